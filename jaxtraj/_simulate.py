@@ -1,0 +1,258 @@
+"""Segment-wise integration of the controlled dynamics on rescaled time.
+
+Segment k = [t_k, t_{k+1}] of the control is integrated on tau in [0, 1] with
+dx/dtau = h_k f(t_k + h_k tau, x, u_k(tau)), h_k = t_{k+1} - t_k (seed 003 eq. 7). Knots and
+tf are thus smooth parameters of x(tf), and every control discontinuity falls on a segment
+boundary, where no integration step straddles it.
+
+Integrators: fixed-step RK4 in `lax.scan` (default; `steps` per segment) or any diffrax
+solver with adaptive steps (`Diffrax`). Both take the same per-segment vector field, which
+is how the unit-solution sensitivities (`_sensitivity.py`) reuse them for the augmented
+state (x, dx/da).
+"""
+
+import abc
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from ._problem import Problem
+from ._status import Status
+from .controls import AbstractControl
+
+
+class AbstractSimulator(eqx.Module):
+    """Integrates one segment's vector field `field(tau, y)` over tau in [0, 1]."""
+
+    @abc.abstractmethod
+    def integrate(self, field: Callable, y0, dense: bool):
+        """Return `(y1, ys, ok)`: the state at tau = 1, the dense states on `dense_grid()`
+        (or None) and a boolean that is False when the integrator itself failed."""
+
+    @abc.abstractmethod
+    def dense_grid(self) -> np.ndarray:
+        """The tau values of the dense output of one segment (including 0 and 1)."""
+
+
+class RK4(AbstractSimulator):
+    """Classical fixed-step Runge-Kutta 4 with `steps` equal steps per segment, in `lax.scan`.
+
+    Derivatives of the result with respect to the parameters are exact derivatives of the
+    discrete map (forward-mode autodiff through the scan).
+    """
+
+    steps: int = 100
+
+    def __check_init__(self):
+        if not (isinstance(self.steps, int) and not isinstance(self.steps, bool) and self.steps >= 1):
+            raise ValueError(f"`steps` must be an int >= 1; got {self.steps!r}.")
+
+    def integrate(self, field, y0, dense):
+        n = self.steps
+        dt = 1.0 / n
+
+        def axpy(alpha, x, y):
+            return jax.tree.map(lambda xi, yi: yi + alpha * xi, x, y)
+
+        def step(y, j):
+            tau = j * dt
+            k1 = field(tau, y)
+            k2 = field(tau + 0.5 * dt, axpy(0.5 * dt, k1, y))
+            k3 = field(tau + 0.5 * dt, axpy(0.5 * dt, k2, y))
+            k4 = field(tau + dt, axpy(dt, k3, y))
+            incr = jax.tree.map(lambda a, b, c, d: a + 2.0 * b + 2.0 * c + d, k1, k2, k3, k4)
+            y1 = axpy(dt / 6.0, incr, y)
+            return y1, (y1 if dense else None)
+
+        y1, ys = lax.scan(step, y0, jnp.arange(n, dtype=jnp.float64))
+        if dense:
+            ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, ys)
+        return y1, ys, jnp.array(True)
+
+    def dense_grid(self):
+        return np.linspace(0.0, 1.0, self.steps + 1)
+
+
+class Diffrax(AbstractSimulator):
+    """Any diffrax solver with a PID step-size controller (adaptive steps) per segment.
+
+    Uses `diffrax.ForwardMode()` so that forward-mode sensitivities work through it.
+    Integration failures (step limit, step-size underflow) are reported as
+    `Status.SIMULATION_FAILED`, never raised.
+    """
+
+    solver: diffrax.AbstractSolver = diffrax.Tsit5()
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    max_steps: int = 16384
+    dense_points: int = 101
+
+    def __check_init__(self):
+        if not (self.rtol > 0 and self.atol > 0):
+            raise ValueError(f"`rtol` and `atol` must be > 0; got rtol={self.rtol}, atol={self.atol}.")
+        if not (isinstance(self.max_steps, int) and self.max_steps >= 1):
+            raise ValueError(f"`max_steps` must be an int >= 1; got {self.max_steps!r}.")
+        if not (isinstance(self.dense_points, int) and self.dense_points >= 2):
+            raise ValueError(f"`dense_points` must be an int >= 2; got {self.dense_points!r}.")
+
+    def integrate(self, field, y0, dense):
+        saveat = diffrax.SaveAt(ts=jnp.asarray(self.dense_grid())) if dense else diffrax.SaveAt(t1=True)
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda tau, y, args: field(tau, y)),
+            self.solver,
+            t0=0.0,
+            t1=1.0,
+            dt0=None,
+            y0=y0,
+            saveat=saveat,
+            stepsize_controller=diffrax.PIDController(rtol=self.rtol, atol=self.atol),
+            max_steps=self.max_steps,
+            adjoint=diffrax.ForwardMode(),
+            throw=False,
+        )
+        y1 = jax.tree.map(lambda ys: ys[-1], sol.ys)
+        ok = sol.result == diffrax.RESULTS.successful
+        return y1, (sol.ys if dense else None), ok
+
+    def dense_grid(self):
+        return np.linspace(0.0, 1.0, self.dense_points)
+
+
+def integrate_segments(simulator: AbstractSimulator, num_segments: int, field, y0, *, jump=None, dense=False):
+    """Integrate segment after segment in a `lax.scan` over the segment index.
+
+    `field(k, tau, y)` is segment k's vector field on tau in [0, 1]; `jump(k, y)`, if
+    given, maps the state at the start of segment k (right after knot t_k) before that
+    segment is integrated. Returns `(y_final, dense_states or None, ok)`; dense states have
+    a leading `(num_segments, len(dense_grid))` shape.
+    """
+
+    def body(y, k):
+        if jump is not None:
+            y = jump(k, y)
+        y1, ys, ok = simulator.integrate(lambda tau, yy: field(k, tau, yy), y, dense)
+        return y1, (ys, ok)
+
+    yf, (ys, oks) = lax.scan(body, y0, jnp.arange(num_segments))
+    return yf, ys, jnp.all(oks)
+
+
+def state_field(problem: Problem, control: AbstractControl, a):
+    """The rescaled vector field of the state: `field(k, tau, x) = h_k f(t, x, u_k(tau))`."""
+    knots = control.knots(a)
+
+    def field(k, tau, x):
+        h = knots[k + 1] - knots[k]
+        t = knots[k] + h * tau
+        u = control.segment_control(a, k, tau)
+        return h * problem.dynamics(t, x, u, problem.args)
+
+    return field
+
+
+def final_state(problem: Problem, control: AbstractControl, a, simulator: AbstractSimulator):
+    """x(tf) and the status of the integration (pure; jit/vmap/jacfwd-able)."""
+    field = state_field(problem, control, a)
+    xf, _, ok = integrate_segments(simulator, control.num_segments, field, problem.x0.astype(a.dtype))
+    return xf, simulation_status(ok, xf)
+
+
+def simulation_status(ok, *values):
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values]))
+    return Status.where(finite, Status.where(ok, Status.SUCCESS, Status.SIMULATION_FAILED), Status.NONFINITE)
+
+
+class Trajectory(eqx.Module):
+    """A dense trajectory for plots and reports.
+
+    `t`, `x`, `u` hold every segment's grid points, segment after segment; a knot appears
+    twice (end of one segment, start of the next), so control jumps show as vertical steps.
+    """
+
+    t: jax.Array
+    x: jax.Array
+    u: jax.Array
+    knots: jax.Array
+    xf: jax.Array
+    status: Status
+
+    @property
+    def tf(self):
+        return self.knots[..., -1]
+
+
+def check_inputs(problem: Problem, control: AbstractControl, a):
+    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
+            "Call jax.config.update('jax_enable_x64', True)."
+        )
+    if not isinstance(problem, Problem):
+        raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
+    if not isinstance(control, AbstractControl):
+        raise ValueError(f"`control` must be a jaxtraj control (jt.controls.*); got {type(control).__name__}.")
+    if control.num_controls != problem.num_controls:
+        raise ValueError(
+            f"`control` has {control.num_controls} channel(s) but `problem` {problem.name!r} "
+            f"expects num_controls={problem.num_controls}."
+        )
+    if isinstance(a, jax.core.Tracer):
+        if a.shape != (control.num_params,):
+            raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
+        return a.astype(jnp.float64)
+    return jnp.asarray(control.validate(a))
+
+
+def check_simulator(simulator):
+    if not isinstance(simulator, AbstractSimulator):
+        raise ValueError(f"`simulator` must be jt.RK4(...) or jt.Diffrax(...); got {type(simulator).__name__}.")
+
+
+@eqx.filter_jit
+def _simulate(problem, control, a, simulator):
+    field = state_field(problem, control, a)
+    K = control.num_segments
+    xf, xs, ok = integrate_segments(simulator, K, field, problem.x0.astype(a.dtype), dense=True)
+    knots = control.knots(a)
+    grid = jnp.asarray(simulator.dense_grid())
+    h = knots[1:] - knots[:-1]
+    t = knots[:-1, None] + h[:, None] * grid[None, :]
+    ks = jnp.broadcast_to(jnp.arange(K)[:, None], t.shape)
+    taus = jnp.broadcast_to(grid[None, :], t.shape)
+    u = jax.vmap(jax.vmap(lambda k, tau: control.segment_control(a, k, tau)))(ks, taus)
+    return Trajectory(
+        t=t.reshape(-1),
+        x=xs.reshape(-1, xs.shape[-1]),
+        u=u.reshape(-1, u.shape[-1]),
+        knots=knots,
+        xf=xf,
+        status=simulation_status(ok, xf),
+    )
+
+
+def simulate(problem: Problem, control: AbstractControl, a, *, simulator: AbstractSimulator = RK4()) -> Trajectory:
+    """Integrate the controlled dynamics from 0 to tf(a) and return the dense trajectory.
+
+    **Arguments:**
+
+    - `problem`: a `jt.Problem`.
+    - `control`: a control parametrization (`jt.controls.*`).
+    - `a`: parameter vector, shape `(control.num_params,)`.
+    - `simulator`: `jt.RK4(steps)` (default, 100 steps per segment) or `jt.Diffrax(...)`.
+      Keyword-only.
+
+    **Returns:** a `jt.Trajectory` (t, x, u, knots, xf, status). Jit-compiled; the same
+    compiled code serves every value of `a`.
+
+    **Raises:** `ValueError` for a parameter vector of the wrong length, non-finite
+    entries, or times out of order (checked on concrete input, outside jit).
+    """
+    a = check_inputs(problem, control, a)
+    check_simulator(simulator)
+    return _simulate(problem, control, a, simulator)

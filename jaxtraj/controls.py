@@ -1,0 +1,476 @@
+"""Control parametrizations u(a, t): each family is one class.
+
+Every family splits [0, tf] into `segments` intervals [t_k, t_{k+1}] (the *knots*, which may
+be parameters) and defines the control on segment k as a function of the rescaled time
+tau = (t - t_k) / (t_{k+1} - t_k) in [0, 1]. Control discontinuities therefore only occur on
+segment boundaries, and the simulator integrates each segment on tau, so node times and tf
+are smooth parameters of the final state (seed 000 sec. 5.3, seed 003 eq. 6-7).
+
+Parameter layouts follow the thesis (seed 000, sec. 5.3 and Tables 5.1-5.13) where it defines
+one; `time_indices` says which entries of `a` are times (node times, durations or tf).
+"""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class AbstractControl(eqx.Module):
+    """A parametrized control u(a, t) on [0, tf(a)], piecewise on `num_segments` segments."""
+
+    @property
+    @abc.abstractmethod
+    def num_params(self) -> int:
+        """Length of the parameter vector `a`."""
+
+    @property
+    @abc.abstractmethod
+    def num_segments(self) -> int:
+        """Number of segments between knots."""
+
+    @property
+    @abc.abstractmethod
+    def time_indices(self) -> tuple[int, ...]:
+        """Indices of the entries of `a` that are times (node/switch times, durations, tf)."""
+
+    @property
+    def num_controls(self) -> int:
+        """Number of control channels."""
+        return 1
+
+    @abc.abstractmethod
+    def knots(self, a) -> jax.Array:
+        """Segment boundaries `(num_segments + 1,)`: 0 = t_0 < t_1 < ... < t_K = tf."""
+
+    @abc.abstractmethod
+    def segment_control(self, a, k, tau) -> jax.Array:
+        """Control `(num_controls,)` on segment `k` (may be traced) at rescaled time tau in [0, 1]."""
+
+    @abc.abstractmethod
+    def initial_guess(self, tf, u_start, u_end) -> jax.Array:
+        """Parameters approximating the straight line u = u_start + (u_end - u_start) t / tf
+        with equally spaced nodes."""
+
+    def _check_values(self, a: np.ndarray) -> None:
+        """Family-specific value checks (outside jit); raise ValueError."""
+
+    # ------------------------------------------------------------------ shared behaviour
+
+    def tf(self, a) -> jax.Array:
+        """Final time tf(a)."""
+        return self.knots(a)[-1]
+
+    def __call__(self, a, t) -> jax.Array:
+        """u(a, t) for scalar or array `t` in [0, tf]; right-continuous at knots, u(tf) is
+        the left limit. Returns shape `t.shape + (num_controls,)`."""
+        knots = self.knots(a)
+        t = jnp.asarray(t, dtype=knots.dtype)
+        k = jnp.clip(jnp.searchsorted(knots, t, side="right") - 1, 0, self.num_segments - 1)
+        h = knots[k + 1] - knots[k]
+        tau = jnp.where(h > 0, (t - knots[k]) / jnp.where(h > 0, h, 1.0), 0.0)
+        flat_k, flat_tau = k.reshape(-1), tau.reshape(-1)
+        u = jax.vmap(lambda kk, tt: self.segment_control(a, kk, tt))(flat_k, flat_tau)
+        return u.reshape(t.shape + (self.num_controls,))
+
+    def control_at_time(self, a, k, t) -> jax.Array:
+        """The formula of segment `k` evaluated at physical time `t` (no segment search).
+
+        Differentiating this with respect to `a` at fixed `t` gives the partial derivative
+        du/da used by the unit-solution (variational) method.
+        """
+        knots = self.knots(a)
+        return self.segment_control(a, k, (t - knots[k]) / (knots[k + 1] - knots[k]))
+
+    def validate(self, a) -> np.ndarray:
+        """Check a concrete parameter vector outside jit; return it as float64 numpy.
+
+        **Raises:** `ValueError` naming the argument, what was expected and what was received.
+        """
+        name = type(self).__name__
+        arr = np.asarray(a)
+        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+            raise ValueError(f"`a` must be a numeric array for {self!r}; got dtype {arr.dtype}.")
+        arr = arr.astype(np.float64)
+        if arr.shape != (self.num_params,):
+            raise ValueError(
+                f"`a` must have shape ({self.num_params},) for {self!r}; got shape {arr.shape}."
+            )
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            raise ValueError(
+                f"`a` must be finite; got non-finite entries at indices {bad.tolist()} "
+                f"(values {arr[bad].tolist()})."
+            )
+        self._check_values(arr)
+        knots = np.asarray(self.knots(jnp.asarray(arr)))
+        if not knots[-1] > 0:
+            raise ValueError(f"`a`: the final time tf must be > 0 for {name}; got tf = {knots[-1]}.")
+        return arr
+
+    def _check_increasing(self, knots: np.ndarray, what: str) -> None:
+        d = np.diff(knots)
+        bad = np.flatnonzero(d <= 0)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"`a`: {what} must be strictly increasing in (0, tf] with tf = {knots[-1]:g}; "
+                f"expected t_{i} < t_{i + 1}, got t_{i} = {knots[i]:g}, t_{i + 1} = {knots[i + 1]:g} "
+                f"(all knots: {np.array2string(knots, precision=6)})."
+            )
+
+
+def _check_segments(segments, name="segments"):
+    if not (isinstance(segments, int) and not isinstance(segments, bool) and segments >= 1):
+        raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
+
+
+def _line(tf, u_start, u_end, t):
+    return u_start + (u_end - u_start) * t / tf
+
+
+def _check_guess(tf):
+    if not (np.isfinite(tf) and tf > 0):
+        raise ValueError(f"`tf` must be a finite number > 0; got {tf!r}.")
+
+
+class PiecewiseLinear(AbstractControl):
+    """Straight-line segments.
+
+    Layouts of `a` (K = `segments`):
+
+    - `continuous=True, free_times=False` (thesis tests 4, 5, sec. 5.3.2):
+      `[u_0, ..., u_K, tf]`, node t_j = j tf / K.
+    - `continuous=True, free_times=True`: `[u_0, ..., u_K, t_1, ..., t_{K-1}, tf]`.
+    - `continuous=False, free_times=True` (thesis tests 1, 2, sec. 5.3.3): per segment
+      `[u_start, u_end, t_end]`; the last t_end is tf.
+    - `continuous=False, free_times=False`: per segment `[u_start, u_end]`, then `tf`.
+    """
+
+    segments: int
+    continuous: bool = True
+    free_times: bool = False
+
+    def __check_init__(self):
+        _check_segments(self.segments)
+
+    @property
+    def num_segments(self):
+        return self.segments
+
+    @property
+    def num_params(self):
+        K = self.segments
+        if self.continuous:
+            return K + 1 + (K - 1 if self.free_times else 0) + 1
+        return 3 * K if self.free_times else 2 * K + 1
+
+    @property
+    def time_indices(self):
+        K = self.segments
+        if self.continuous:
+            return tuple(range(K + 1, self.num_params))
+        if self.free_times:
+            return tuple(3 * k + 2 for k in range(K))
+        return (2 * K,)
+
+    def _unpack(self, a):
+        K = self.segments
+        if self.continuous:
+            u = a[: K + 1]
+            ends = jnp.stack([u[:-1], u[1:]], axis=1)
+            if self.free_times:
+                inner = a[K + 1 : 2 * K]
+                knots = jnp.concatenate([jnp.zeros(1, a.dtype), inner, a[-1:]])
+            else:
+                knots = a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+            return ends, knots
+        if self.free_times:
+            blocks = a.reshape(K, 3)
+            return blocks[:, :2], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 2]])
+        ends = a[: 2 * K].reshape(K, 2)
+        return ends, a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+
+    def knots(self, a):
+        return self._unpack(a)[1]
+
+    def segment_control(self, a, k, tau):
+        ends = self._unpack(a)[0][k]
+        return (ends[0] + (ends[1] - ends[0]) * tau)[None]
+
+    def initial_guess(self, tf, u_start, u_end):
+        _check_guess(tf)
+        K = self.segments
+        t = tf * np.arange(K + 1) / K
+        u = _line(tf, u_start, u_end, t)
+        if self.continuous:
+            parts = [u] + ([t[1:-1]] if self.free_times else []) + [[tf]]
+            return jnp.asarray(np.concatenate(parts), dtype=jnp.float64)
+        if self.free_times:
+            return jnp.asarray(np.stack([u[:-1], u[1:], t[1:]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([np.stack([u[:-1], u[1:]], axis=1).reshape(-1), [tf]]))
+
+    def _check_values(self, a):
+        if self.free_times:
+            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "node times")
+
+
+class PiecewiseParabolic(AbstractControl):
+    """Parabolic arcs, possibly discontinuous at the nodes (thesis test 3, sec. 5.3.4).
+
+    Per arc `[u_start, slope, u_end, t_end]` (`free_times=True`; the last t_end is tf) or
+    `[u_start, slope, u_end]` followed by `tf` (`free_times=False`, equally spaced nodes).
+    On arc k of duration h: u = u_start + slope h tau + (u_end - u_start - slope h) tau^2.
+
+    !!! note "OCR decision"
+        The thesis's formula for the arc is garbled in the OCR. The second parameter of
+        each arc is the *initial slope du/dt* of the arc: with it the published starting
+        vector of test 3 (Table 5.5: a_2 = a_6 = 1.386 = 2.35619 / 1.7) reproduces the
+        straight starting control u = 1.5 pi t / 3.4 exactly, as its initial constraint
+        error (0.318669, the same as tests 1, 2, 4, 5) requires.
+    """
+
+    segments: int
+    free_times: bool = True
+
+    def __check_init__(self):
+        _check_segments(self.segments)
+
+    @property
+    def num_segments(self):
+        return self.segments
+
+    @property
+    def num_params(self):
+        return 4 * self.segments if self.free_times else 3 * self.segments + 1
+
+    @property
+    def time_indices(self):
+        if self.free_times:
+            return tuple(4 * k + 3 for k in range(self.segments))
+        return (3 * self.segments,)
+
+    def _unpack(self, a):
+        K = self.segments
+        if self.free_times:
+            blocks = a.reshape(K, 4)
+            return blocks[:, :3], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 3]])
+        return a[: 3 * K].reshape(K, 3), a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+
+    def knots(self, a):
+        return self._unpack(a)[1]
+
+    def segment_control(self, a, k, tau):
+        coef, knots = self._unpack(a)
+        u0, slope, u1 = coef[k, 0], coef[k, 1], coef[k, 2]
+        h = knots[k + 1] - knots[k]
+        return (u0 + slope * h * tau + (u1 - u0 - slope * h) * tau**2)[None]
+
+    def initial_guess(self, tf, u_start, u_end):
+        _check_guess(tf)
+        K = self.segments
+        t = tf * np.arange(K + 1) / K
+        u = _line(tf, u_start, u_end, t)
+        slope = np.full(K, (u_end - u_start) / tf)
+        if self.free_times:
+            return jnp.asarray(np.stack([u[:-1], slope, u[1:], t[1:]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([np.stack([u[:-1], slope, u[1:]], axis=1).reshape(-1), [tf]]))
+
+    def _check_values(self, a):
+        if self.free_times:
+            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "node times")
+
+
+class PiecewiseConstant(AbstractControl):
+    """Constant levels with (free) switch times (thesis tests 6, 7, sec. 5.3.5).
+
+    Per piece `[level, t_end]` (`free_times=True`; the last t_end is tf), or
+    `[level_1, ..., level_K, tf]` with equally spaced switches (`free_times=False`).
+    """
+
+    segments: int
+    free_times: bool = True
+
+    def __check_init__(self):
+        _check_segments(self.segments)
+
+    @property
+    def num_segments(self):
+        return self.segments
+
+    @property
+    def num_params(self):
+        return 2 * self.segments if self.free_times else self.segments + 1
+
+    @property
+    def time_indices(self):
+        if self.free_times:
+            return tuple(2 * k + 1 for k in range(self.segments))
+        return (self.segments,)
+
+    def _unpack(self, a):
+        K = self.segments
+        if self.free_times:
+            blocks = a.reshape(K, 2)
+            return blocks[:, 0], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 1]])
+        return a[:K], a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+
+    def knots(self, a):
+        return self._unpack(a)[1]
+
+    def segment_control(self, a, k, tau):
+        level = self._unpack(a)[0][k]
+        return (level + 0.0 * tau)[None]
+
+    def initial_guess(self, tf, u_start, u_end):
+        """Levels = the straight line's value at each piece's midpoint."""
+        _check_guess(tf)
+        K = self.segments
+        t = tf * np.arange(K + 1) / K
+        levels = _line(tf, u_start, u_end, 0.5 * (t[:-1] + t[1:]))
+        if self.free_times:
+            return jnp.asarray(np.stack([levels, t[1:]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([levels, [tf]]))
+
+    def _check_values(self, a):
+        if self.free_times:
+            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "switch times")
+
+
+def spline_kernel(t, degree: int):
+    """The compact spline Sp*(t) of seed 003 (support [-1, 1]):
+
+    2^(p-1) (1+t)^p on [-1, -1/2], 1 - 2^(p-1) |t|^p on [-1/2, 1/2], 2^(p-1) (1-t)^p on
+    [1/2, 1]. Degree 0 is 1/2 on [-1, 1], degree 1 the hat function; for every degree the
+    shifted copies sum to 1 (a partition of unity)."""
+    c = 2.0 ** (degree - 1)
+    at = jnp.abs(t)
+    inner = 1.0 - c * at**degree
+    outer = c * (1.0 - at) ** degree
+    return jnp.where(at <= 0.5, inner, jnp.where(at <= 1.0, outer, 0.0))
+
+
+class SaturatedSpline(AbstractControl):
+    """Saturated spline expansion of seed 003 (eq. 6-8).
+
+    The global rescaled time tau_g in [0, 1] is split into P = `segments` equal parts; part k
+    is flown in physical duration h_k, so tf = sum h_k. Each control channel j is
+    u_j = clip(g_j, lower_j, upper_j), g_j(tau_g) = sum_{i=0..P} c_i^j Sp*(tau_g P - i).
+    On segment k only c_k and c_{k+1} are active: g = c_k Sp*(tau) + c_{k+1} Sp*(tau - 1).
+
+    Layout (the seed's): `[h_1, ..., h_P, c_0^1, ..., c_P^1, ..., c_0^q, ..., c_P^q]` with
+    `free_durations=True`; with `free_durations=False` the durations are equal and the
+    first entry is tf: `[tf, c_0^1, ..., c_P^q]`.
+
+    Where the clip is active, du/da = 0 (the derivative of `jnp.clip`), which is the
+    saturation rule of seed 000 appendix A [A.31-A.34] for box bounds.
+
+    !!! note
+        For degree >= 1 the control has a kink where it enters or leaves saturation, in the
+        middle of a segment. A fixed-step integrator that steps across the kink loses its
+        order there (O(h) local error), so RK4 results and the forward/unit sensitivities
+        agree only to O(h) on such trajectories; use more steps or `jt.Diffrax` (adaptive).
+    """
+
+    segments: int
+    degree: int
+    lower: jax.Array
+    upper: jax.Array
+    free_durations: bool = True
+
+    def __init__(self, segments, degree, lower, upper, free_durations=True):
+        _check_segments(segments)
+        if not (isinstance(degree, int) and not isinstance(degree, bool) and 0 <= degree <= 3):
+            raise ValueError(f"`degree` must be an int in 0..3; got {degree!r}.")
+        lo = np.atleast_1d(np.asarray(lower, dtype=np.float64))
+        hi = np.atleast_1d(np.asarray(upper, dtype=np.float64))
+        if lo.ndim != 1 or hi.ndim != 1:
+            raise ValueError(f"`lower`/`upper` must be scalars or 1-D; got shapes {lo.shape}, {hi.shape}.")
+        lo, hi = np.broadcast_arrays(lo, hi)
+        if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo >= hi):
+            raise ValueError(f"`lower` must be < `upper` component-wise; got lower={lo}, upper={hi}.")
+        self.segments = segments
+        self.degree = degree
+        self.lower = jnp.asarray(lo.copy())
+        self.upper = jnp.asarray(hi.copy())
+        self.free_durations = free_durations
+
+    @property
+    def num_segments(self):
+        return self.segments
+
+    @property
+    def num_controls(self):
+        return int(self.lower.shape[0])
+
+    @property
+    def _num_times(self):
+        return self.segments if self.free_durations else 1
+
+    @property
+    def num_params(self):
+        return self._num_times + (self.segments + 1) * self.num_controls
+
+    @property
+    def time_indices(self):
+        return tuple(range(self._num_times))
+
+    def durations(self, a):
+        P = self.segments
+        if self.free_durations:
+            return a[:P]
+        return jnp.full(P, a[0] / P, dtype=a.dtype)
+
+    def coefficients(self, a):
+        """Spline coefficients, shape `(num_controls, segments + 1)`."""
+        return a[self._num_times :].reshape(self.num_controls, self.segments + 1)
+
+    def knots(self, a):
+        return jnp.concatenate([jnp.zeros(1, a.dtype), jnp.cumsum(self.durations(a))])
+
+    def segment_control(self, a, k, tau):
+        # On [0, 1], Sp*(tau) + Sp*(tau - 1) = 1, so g = c_{k+1} + (c_k - c_{k+1}) Sp*(tau),
+        # written with one-sided polynomials (no |tau|, whose derivative at the knots would be 0).
+        c = self.coefficients(a)
+        if self.degree == 0:
+            left = 0.5
+        else:
+            half = 2.0 ** (self.degree - 1)
+            left = jnp.where(tau <= 0.5, 1.0 - half * tau**self.degree, half * (1.0 - tau) ** self.degree)
+        g = c[:, k + 1] + (c[:, k] - c[:, k + 1]) * left
+        return jnp.clip(g, self.lower, self.upper)
+
+    def initial_guess(self, tf, u_start, u_end):
+        """Durations tf / P; coefficients on the straight line at the nodes (exact for
+        degree 1), clipped to the bounds."""
+        _check_guess(tf)
+        P, q = self.segments, self.num_controls
+        us = np.broadcast_to(np.asarray(u_start, dtype=np.float64), (q,))
+        ue = np.broadcast_to(np.asarray(u_end, dtype=np.float64), (q,))
+        s = np.arange(P + 1) / P
+        c = us[:, None] + (ue - us)[:, None] * s[None, :]
+        c = np.clip(c, np.asarray(self.lower)[:, None], np.asarray(self.upper)[:, None])
+        times = np.full(P, tf / P) if self.free_durations else np.array([tf])
+        return jnp.asarray(np.concatenate([times, c.reshape(-1)]))
+
+    def _check_values(self, a):
+        h = a[: self.segments] if self.free_durations else a[:1]
+        bad = np.flatnonzero(h < 0)
+        if bad.size:
+            i = int(bad[0])
+            what = "segment durations h_k" if self.free_durations else "the final time tf"
+            raise ValueError(
+                f"`a`: {what} (a[{i}]) must be >= 0; got a[{i}] = {h[i]:g} (all: {h.tolist()})."
+            )
+
+
+__all__ = [
+    "AbstractControl",
+    "PiecewiseLinear",
+    "PiecewiseParabolic",
+    "PiecewiseConstant",
+    "SaturatedSpline",
+    "spline_kernel",
+]

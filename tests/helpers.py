@@ -1,0 +1,49 @@
+"""Shared test helpers."""
+
+import jax.numpy as jnp
+import numpy as np
+
+import jaxtraj as jt
+
+ALL_CASES = range(1, 8)
+
+
+def rel_err(got, want):
+    """Max-abs difference relative to the max-abs of the reference."""
+    got, want = np.asarray(got), np.asarray(want)
+    return float(np.max(np.abs(got - want)) / max(np.max(np.abs(want)), 1e-300))
+
+
+def family_examples():
+    """One Earth-Mars-compatible (problem, control, a) per control family and layout, with
+    parameters away from the straight line so that every parameter matters."""
+    prob = jt.problems.earth_mars.problem()
+    rng = np.random.default_rng(0)
+    out = []
+    controls = [
+        jt.controls.PiecewiseLinear(4),
+        jt.controls.PiecewiseLinear(4, continuous=True, free_times=True),
+        jt.controls.PiecewiseLinear(3, continuous=False, free_times=True),
+        jt.controls.PiecewiseLinear(3, continuous=False, free_times=False),
+        jt.controls.PiecewiseParabolic(2),
+        jt.controls.PiecewiseParabolic(2, free_times=False),
+        jt.controls.PiecewiseConstant(3),
+        jt.controls.PiecewiseConstant(3, free_times=False),
+        jt.controls.SaturatedSpline(4, 0, -1.0, 6.0),
+        jt.controls.SaturatedSpline(4, 1, -1.0, 6.0),
+        jt.controls.SaturatedSpline(4, 2, -1.0, 6.0),
+        jt.controls.SaturatedSpline(4, 3, -1.0, 6.0),
+        jt.controls.SaturatedSpline(3, 3, -1.0, 6.0, free_durations=False),
+    ]
+    for ctrl in controls:
+        a = np.asarray(ctrl.initial_guess(3.4, 0.0, 1.5 * np.pi))
+        noise = 0.05 * rng.standard_normal(a.shape)
+        noise[list(ctrl.time_indices)] *= 0.2  # keep the times ordered
+        out.append((prob, ctrl, jnp.asarray(a + noise)))
+    # Saturation active on whole segments (degree 0: levels (c_k + c_{k+1}) / 2): the first
+    # level is clipped at 0.5 and the last at 3.0, so du/da = 0 there. (With degree >= 1 a
+    # saturation kink falls inside an RK4 step, where fixed-step integration drops to low
+    # order and the unit/forward agreement is only O(h); see SaturatedSpline.)
+    sat = jt.controls.SaturatedSpline(4, 0, 0.5, 3.0)
+    out.append((prob, sat, jnp.array([0.8, 0.9, 0.85, 0.8, -0.5, 0.9, 2.2, 3.4, 4.0])))
+    return out
