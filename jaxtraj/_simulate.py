@@ -164,7 +164,7 @@ def final_state(problem: Problem, control: AbstractControl, a, simulator: Abstra
 
 def simulation_status(ok, *values):
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values]))
-    return Status.where(finite, Status.where(ok, Status.SUCCESS, Status.SIMULATION_FAILED), Status.NONFINITE)
+    return Status.where(ok, Status.where(finite, Status.SUCCESS, Status.NONFINITE), Status.SIMULATION_FAILED)
 
 
 class Trajectory(eqx.Module):

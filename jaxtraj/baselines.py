@@ -1,0 +1,178 @@
+"""Reference solvers built on jaxtraj's evaluation, for cross-checking the library's own
+search.
+
+`solve_slsqp` hands the restricted problem "minimize G(a) subject to E(a) = 0" to
+`scipy.optimize.minimize(method="SLSQP")`, with G, G_a, E and H = dE/da from
+`evaluate_restricted` (one jit-compiled function, one integration per distinct `a`).
+"""
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from ._problem import Problem
+from ._sensitivity import _check_method, evaluate_restricted
+from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
+from ._status import Status
+from .controls import AbstractControl
+
+#: Minimum gap between consecutive knots (node/switch times) imposed on the search.
+MIN_KNOT_GAP = 1e-6
+
+# One compiled evaluation per (problem, control, simulator, method) structure: problem,
+# control and simulator fields that are arrays are traced, everything else (functions,
+# segment counts, step counts, the method name) is static. Repeated solves of the same
+# problem therefore reuse the compiled code.
+_evaluate_jit = eqx.filter_jit(evaluate_restricted)
+
+
+@dataclasses.dataclass(frozen=True)
+class SLSQPResult:
+    """Outcome of `solve_slsqp`.
+
+    - `params`: final parameter vector (float64 numpy).
+    - `tf`: final time tf(params).
+    - `objective`: G(params).
+    - `constraints`: E(params) = M(tf, x(tf)).
+    - `max_constraint_error`: max |E(params)|.
+    - `iterations`: SLSQP major iterations (`nit`).
+    - `evaluations`: number of distinct parameter vectors integrated.
+    - `success`: SLSQP reported convergence and the final evaluation is finite.
+    - `message`: SLSQP's message (or the simulation status message on failure).
+    - `wall_time`: seconds for the whole call, compilation included.
+    """
+
+    params: np.ndarray
+    tf: float
+    objective: float
+    constraints: np.ndarray
+    max_constraint_error: float
+    iterations: int
+    evaluations: int
+    success: bool
+    message: str
+    wall_time: float
+
+
+class _CachedEvaluation:
+    """Calls the compiled evaluation at most once per distinct `a` (the last one is kept),
+    so that SLSQP's separate fun / jac / constraint calls at one point cost one integration."""
+
+    def __init__(self, problem, control, simulator, method):
+        self._fn = lambda a: _evaluate_jit(problem, control, a, simulator, method)
+        self._key = None
+        self._value = None
+        self.count = 0
+
+    def __call__(self, a):
+        a = np.asarray(a, dtype=np.float64)
+        key = a.tobytes()
+        if key != self._key:
+            ev = self._fn(jnp.asarray(a))
+            self._value = {
+                "tf": float(ev.tf),
+                "G": float(ev.G),
+                "G_a": np.asarray(ev.G_a, dtype=np.float64),
+                "E": np.asarray(ev.E, dtype=np.float64),
+                "H": np.asarray(ev.H, dtype=np.float64),
+                "ok": bool(ev.status == Status.SUCCESS),
+                "status": ev.status,
+            }
+            self._key = key
+            self.count += 1
+        return self._value
+
+
+def _knot_gap_constraint(control, a0):
+    """Linear inequality `D a + c >= MIN_KNOT_GAP` with rows knots[k+1] - knots[k]."""
+    J = np.asarray(jax.jacfwd(control.knots)(a0), dtype=np.float64)  # (K + 1, np)
+    offset = np.asarray(control.knots(a0), dtype=np.float64) - J @ np.asarray(a0, dtype=np.float64)
+    # The knots of every family are linear in a; check it on a second point.
+    probe = np.asarray(a0, dtype=np.float64) + 0.01 * np.arange(1, J.shape[1] + 1)
+    if not np.allclose(np.asarray(control.knots(jnp.asarray(probe))), J @ probe + offset, rtol=1e-12, atol=1e-12):
+        raise ValueError(f"`control.knots` is not affine in `a` for {control!r}; solve_slsqp needs it to be.")
+    D = J[1:] - J[:-1]
+    c = offset[1:] - offset[:-1] - MIN_KNOT_GAP
+    return {"type": "ineq", "fun": lambda a: D @ a + c, "jac": lambda a: D}
+
+
+def solve_slsqp(
+    problem: Problem,
+    control: AbstractControl,
+    a0,
+    *,
+    simulator: AbstractSimulator | None = None,
+    method: str = "forward",
+    ftol: float = 1e-14,
+    maxiter: int = 500,
+) -> SLSQPResult:
+    """Solve the restricted problem "minimize G(a) subject to E(a) = 0" with SciPy's SLSQP.
+
+    The objective G, its gradient G_a, the terminal constraints E = M(tf, x(tf)) and their
+    Jacobian H = dE/da come from one jit-compiled `evaluate_restricted`; SLSQP's calls at
+    the same `a` share one integration. Consecutive knots (node/switch times, tf) are kept
+    ordered by the linear inequalities knots[k+1] - knots[k] >= 1e-6, k = 0..K-1, built
+    from the (affine) map `control.knots`; without them a free-time search can cross two
+    switch times.
+
+    **Arguments:**
+
+    - `problem`: a `jt.Problem`.
+    - `control`: a control parametrization (`jt.controls.*`).
+    - `a0`: starting parameter vector, shape `(control.num_params,)`.
+    - `simulator`: keyword-only, default `jt.RK4()` (100 steps per segment).
+    - `method`: sensitivity method, `"forward"` (default), `"unit"` or `"fd"`.
+    - `ftol`: SLSQP's tolerance on the objective change (default 1e-14).
+    - `maxiter`: SLSQP's iteration limit (default 500).
+
+    **Returns:** an `SLSQPResult` (params, tf, objective, constraints, max_constraint_error,
+    iterations, evaluations, success, message, wall_time).
+
+    **Raises:** `ValueError` for invalid inputs (as `jt.evaluate`).
+    """
+    start = time.perf_counter()
+    if simulator is None:
+        simulator = RK4()
+    _check_method(method)
+    a0 = check_inputs(problem, control, a0)
+    check_simulator(simulator)
+
+    ev = _CachedEvaluation(problem, control, simulator, method)
+    constraints = [
+        {"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]},
+        _knot_gap_constraint(control, a0),
+    ]
+    res = scipy.optimize.minimize(
+        lambda a: ev(a)["G"],
+        np.asarray(a0, dtype=np.float64),
+        jac=lambda a: ev(a)["G_a"],
+        method="SLSQP",
+        constraints=constraints,
+        options={"ftol": ftol, "maxiter": maxiter},
+    )
+    x = np.asarray(res.x, dtype=np.float64)
+    final = ev(x)
+    message = str(res.message)
+    if not final["ok"]:
+        message = f"{message} (final evaluation: {Status[final['status']]})"
+    E = final["E"].copy()
+    return SLSQPResult(
+        params=x.copy(),
+        tf=final["tf"],
+        objective=final["G"],
+        constraints=E,
+        max_constraint_error=float(np.max(np.abs(E))) if E.size else 0.0,
+        iterations=int(res.nit),
+        evaluations=ev.count,
+        success=bool(res.success) and final["ok"],
+        message=message,
+        wall_time=time.perf_counter() - start,
+    )
+
+
+__all__ = ["SLSQPResult", "solve_slsqp"]

@@ -1,0 +1,122 @@
+"""Bad input fails early, outside jit, with a ValueError naming the argument, the expected
+and the received value."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+
+C = jt.controls
+PROB = jt.problems.earth_mars.problem()
+
+
+def test_wrong_length():
+    ctrl = C.PiecewiseLinear(5)
+    with pytest.raises(ValueError, match=r"`a` must have shape \(7,\).*got shape \(6,\)"):
+        jt.simulate(PROB, ctrl, jnp.zeros(6))
+    with pytest.raises(ValueError, match=r"`a` must have shape \(7,\)"):
+        jt.sensitivities(PROB, ctrl, jnp.zeros((7, 1)))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_entries(bad):
+    ctrl = C.PiecewiseLinear(5)
+    a = np.array(ctrl.initial_guess(3.4, 0.0, 4.7))
+    a[2] = bad
+    with pytest.raises(ValueError, match=r"`a` must be finite.*indices \[2\]"):
+        jt.evaluate(PROB, ctrl, a)
+
+
+def test_node_times_out_of_order():
+    ctrl = C.PiecewiseLinear(3, continuous=False, free_times=True)
+    a = np.array(ctrl.initial_guess(3.4, 0.0, 4.7))
+    a[5] = 0.5  # t_2 < t_1 = 1.133
+    with pytest.raises(ValueError, match=r"node times must be strictly increasing.*t_1 < t_2, got t_1 = 1.13333, t_2 = 0.5"):
+        jt.simulate(PROB, ctrl, a)
+
+
+def test_node_time_beyond_tf():
+    ctrl = C.PiecewiseLinear(4, continuous=True, free_times=True)
+    a = np.array(ctrl.initial_guess(3.4, 0.0, 4.7))
+    a[7] = 3.6  # last interior node after tf = 3.4
+    with pytest.raises(ValueError, match=r"strictly increasing in \(0, tf\] with tf = 3.4.*t_3 = 3.6"):
+        jt.sensitivities(PROB, ctrl, a, "unit")
+
+
+def test_switch_times_out_of_order_and_negative_tf():
+    ctrl = C.PiecewiseConstant(2)
+    with pytest.raises(ValueError, match="switch times"):
+        jt.simulate(PROB, ctrl, jnp.array([0.0, 2.0, 1.0, 1.5]))
+    with pytest.raises(ValueError, match="switch times"):
+        jt.simulate(PROB, ctrl, jnp.array([0.0, -1.0, 1.0, 1.5]))
+    fixed = C.PiecewiseConstant(2, free_times=False)
+    with pytest.raises(ValueError, match=r"tf must be > 0.*got tf = -1"):
+        jt.simulate(PROB, fixed, jnp.array([0.0, 1.0, -1.0]))
+
+
+def test_negative_durations():
+    ctrl = C.SaturatedSpline(3, 2, -1.0, 1.0)
+    a = np.array(ctrl.initial_guess(3.0, 0.0, 0.5))
+    a[1] = -0.2
+    with pytest.raises(ValueError, match=r"segment durations h_k \(a\[1\]\) must be >= 0; got a\[1\] = -0.2"):
+        jt.simulate(PROB, ctrl, a)
+
+
+@pytest.mark.parametrize("degree", [-1, 4, 1.5, True])
+def test_degree_outside_range(degree):
+    with pytest.raises(ValueError, match=r"`degree` must be an int in 0..3; got"):
+        C.SaturatedSpline(3, degree, -1.0, 1.0)
+
+
+@pytest.mark.parametrize("segments", [0, -2, 2.0])
+def test_bad_segment_count(segments):
+    with pytest.raises(ValueError, match=r"`segments` must be an int >= 1"):
+        C.PiecewiseLinear(segments)
+
+
+def test_bad_bounds_method_simulator_and_guess():
+    with pytest.raises(ValueError, match=r"`lower` must be < `upper`"):
+        C.SaturatedSpline(3, 1, 1.0, -1.0)
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    with pytest.raises(ValueError, match=r"`method` must be one of \('forward', 'unit', 'fd'\); got 'adjoint'"):
+        jt.sensitivities(prob, ctrl, a0, "adjoint")
+    with pytest.raises(ValueError, match=r"`simulator` must be"):
+        jt.simulate(prob, ctrl, a0, simulator="rk4")
+    with pytest.raises(ValueError, match=r"`steps` must be an int >= 1; got 0"):
+        jt.RK4(0)
+    with pytest.raises(ValueError, match=r"`tf` must be a finite number > 0"):
+        ctrl.initial_guess(-1.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match=r"`n` must be a thesis case in 1..7; got 8"):
+        jt.problems.earth_mars.thesis_case(8)
+
+
+def test_bad_problem_definitions():
+    with pytest.raises(ValueError, match=r"`dynamics\(t, x, u, args\)` must return an array of shape \(3,\)"):
+        jt.Problem(lambda t, x, u, args: x[:2], [0.0, 1.0, 1.0], lambda tf, xf, args: xf, ("a", "b", "c"))
+    with pytest.raises(ValueError, match=r"`terminal\(tf, xf, args\)` must return an array of shape \(2,\)"):
+        jt.Problem(lambda t, x, u, args: x, [0.0, 1.0, 1.0], lambda tf, xf, args: xf, ("a", "b"))
+    with pytest.raises(ValueError, match=r"`x0` must be finite"):
+        jt.Problem(lambda t, x, u, args: x, [0.0, np.nan], lambda tf, xf, args: xf, ("a", "b"))
+    with pytest.raises(ValueError, match=r"unknown Earth-Mars constant"):
+        jt.problems.earth_mars.problem(gravity=2.0)
+
+
+def test_control_channel_mismatch():
+    ctrl = C.SaturatedSpline(2, 1, [-1.0, -1.0], [1.0, 1.0])
+    with pytest.raises(ValueError, match=r"2 channel\(s\) but `problem` 'earth-mars' expects num_controls=1"):
+        jt.simulate(PROB, ctrl, ctrl.initial_guess(3.0, 0.0, 0.5))
+
+
+def test_float64_is_enforced():
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    assert jt.simulate(prob, ctrl, a0).xf.dtype == jnp.float64
+    # a float32 input is promoted, never computed in float32
+    assert jt.evaluate(prob, ctrl, np.asarray(a0, dtype=np.float32)).H.dtype == jnp.float64
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(RuntimeError, match="jaxtraj needs float64"):
+            jt.simulate(prob, ctrl, a0)
+    finally:
+        jax.config.update("jax_enable_x64", True)
