@@ -28,6 +28,7 @@ from ._simulate import (
     check_simulator,
     final_state,
     integrate_segments,
+    segment_data,
     simulation_status,
 )
 from ._status import Status
@@ -37,6 +38,13 @@ METHODS = ("forward", "unit", "fd")
 
 
 def forward_jacobian(problem, control, a, simulator):
+    """`jax.jacfwd` through the whole segment-wise integration.
+
+    (Chaining per-step or per-segment Jacobians by hand was measured slower on CPU: the
+    cost is dominated by the number of XLA operations per integration step, not by the
+    tangent count; see benchmarks/RESULTS.md.)
+    """
+
     def f(a):
         xf, status = final_state(problem, control, a, simulator)
         return xf, (xf, status)
@@ -46,7 +54,8 @@ def forward_jacobian(problem, control, a, simulator):
 
 
 def unit_jacobian(problem, control, a, simulator):
-    knots = control.knots(a)
+    data = segment_data(control, a)  # rows theta_k = [shape coefficients, t_k, h_k]
+    data_a = jax.jacfwd(segment_data, argnums=1)(control, a)
     dknots = jax.jacfwd(control.knots)(a)  # (K + 1, np): dt_q/da
     K = control.num_segments
     n, npar = problem.num_states, a.shape[0]
@@ -56,30 +65,39 @@ def unit_jacobian(problem, control, a, simulator):
 
     dfdx = jax.jacfwd(f, argnums=1)
     dfdu = jax.jacfwd(f, argnums=2)
-    dudA = jax.jacfwd(control.control_at_time, argnums=0)
 
-    def field(k, tau, y):
+    def u_at_time(theta, t):
+        # The segment's formula at fixed physical t; its theta-derivative is the partial du/da
+        # at fixed t (zero where the control saturates).
+        return control.local_control(theta[:-2], theta[-1], (t - theta[-2]) / theta[-1])
+
+    du_dtheta = jax.jacfwd(u_at_time)
+
+    def field(segment, tau, y):
+        theta, theta_a = segment
         x, p = y
-        h = knots[k + 1] - knots[k]
-        t = knots[k] + h * tau
-        u = control.segment_control(a, k, tau)
-        du_da = dudA(a, k, t)  # partial du/da at fixed physical t, shape (nu, np)
-        dp = dfdx(t, x, u) @ p + dfdu(t, x, u) @ du_da
+        h = theta[-1]
+        t = theta[-2] + h * tau
+        u = control.local_control(theta[:-2], h, tau)
+        du_da = du_dtheta(theta, t) @ theta_a  # (nu, np)
+        dp = dfdx(t, x, u) @ p + dfdu(t, x, u) @ du_da  # [A.25-A.26]
         return h * f(t, x, u), h * dp
 
-    def jump(k, y):
+    def jump(k, segment, y):
         # [A.27-A.29]: p(t_q+) = p(t_q-) + [f(t_q-) - f(t_q+)] dt_q/da at the start of segment k > 0.
+        theta, _ = segment
         x, p = y
-        t = knots[k]
-        u_minus = control.segment_control(a, jnp.maximum(k - 1, 0), 1.0)
-        u_plus = control.segment_control(a, k, 0.0)
-        df = f(t, x, u_minus) - f(t, x, u_plus)
+        prev = data[jnp.maximum(k - 1, 0)]
+        u_minus = control.local_control(prev[:-2], prev[-1], 1.0)
+        u_plus = control.local_control(theta[:-2], theta[-1], 0.0)
+        df = f(theta[-2], x, u_minus) - f(theta[-2], x, u_plus)
         return x, p + jnp.where(k > 0, jnp.outer(df, dknots[k]), 0.0)
 
     y0 = (problem.x0.astype(a.dtype), jnp.zeros((n, npar), a.dtype))
-    (xf, p), _, ok = integrate_segments(simulator, K, field, y0, jump=jump)
-    f_end = f(knots[-1], xf, control.segment_control(a, K - 1, 1.0))
-    jac = p + jnp.outer(f_end, dknots[-1])
+    (xf, p), _, ok = integrate_segments(simulator, field, (data, data_a), y0, jump=jump)
+    last = data[K - 1]
+    f_end = f(last[-2] + last[-1], xf, control.local_control(last[:-2], last[-1], 1.0))
+    jac = p + jnp.outer(f_end, dknots[-1])  # the f(tf) dtf/da term
     return xf, jac, simulation_status(ok, xf, jac)
 
 

@@ -56,17 +56,8 @@ class RK4(AbstractSimulator):
         n = self.steps
         dt = 1.0 / n
 
-        def axpy(alpha, x, y):
-            return jax.tree.map(lambda xi, yi: yi + alpha * xi, x, y)
-
         def step(y, j):
-            tau = j * dt
-            k1 = field(tau, y)
-            k2 = field(tau + 0.5 * dt, axpy(0.5 * dt, k1, y))
-            k3 = field(tau + 0.5 * dt, axpy(0.5 * dt, k2, y))
-            k4 = field(tau + dt, axpy(dt, k3, y))
-            incr = jax.tree.map(lambda a, b, c, d: a + 2.0 * b + 2.0 * c + d, k1, k2, k3, k4)
-            y1 = axpy(dt / 6.0, incr, y)
+            y1 = self._step(field, j * dt, dt, y)
             return y1, (y1 if dense else None)
 
         y1, ys = lax.scan(step, y0, jnp.arange(n, dtype=jnp.float64))
@@ -76,6 +67,18 @@ class RK4(AbstractSimulator):
 
     def dense_grid(self):
         return np.linspace(0.0, 1.0, self.steps + 1)
+
+    @staticmethod
+    def _step(field, tau, dt, y):
+        def axpy(alpha, x, y):
+            return jax.tree.map(lambda xi, yi: yi + alpha * xi, x, y)
+
+        k1 = field(tau, y)
+        k2 = field(tau + 0.5 * dt, axpy(0.5 * dt, k1, y))
+        k3 = field(tau + 0.5 * dt, axpy(0.5 * dt, k2, y))
+        k4 = field(tau + dt, axpy(dt, k3, y))
+        incr = jax.tree.map(lambda a, b, c, d: a + 2.0 * b + 2.0 * c + d, k1, k2, k3, k4)
+        return axpy(dt / 6.0, incr, y)
 
 
 class Diffrax(AbstractSimulator):
@@ -123,42 +126,53 @@ class Diffrax(AbstractSimulator):
         return np.linspace(0.0, 1.0, self.dense_points)
 
 
-def integrate_segments(simulator: AbstractSimulator, num_segments: int, field, y0, *, jump=None, dense=False):
-    """Integrate segment after segment in a `lax.scan` over the segment index.
+def integrate_segments(simulator: AbstractSimulator, field, data, y0, *, jump=None, dense=False):
+    """Integrate segment after segment in a `lax.scan` over the rows of `data`.
 
-    `field(k, tau, y)` is segment k's vector field on tau in [0, 1]; `jump(k, y)`, if
-    given, maps the state at the start of segment k (right after knot t_k) before that
-    segment is integrated. Returns `(y_final, dense_states or None, ok)`; dense states have
-    a leading `(num_segments, len(dense_grid))` shape.
+    `field(theta, tau, y)` is the vector field on tau in [0, 1] of the segment whose row of
+    `data` is theta; `jump(k, theta, y)`, if given, maps the state at the start of segment k
+    (right after knot t_k) before that segment is integrated. Returns
+    `(y_final, dense_states or None, ok)`; dense states have a leading
+    `(num_segments, len(dense_grid))` shape. Scanning over the rows (instead of indexing
+    `data[k]` inside the vector field) keeps gathers out of the integration loop.
     """
 
-    def body(y, k):
+    def body(y, xs):
+        k, theta = xs
         if jump is not None:
-            y = jump(k, y)
-        y1, ys, ok = simulator.integrate(lambda tau, yy: field(k, tau, yy), y, dense)
+            y = jump(k, theta, y)
+        y1, ys, ok = simulator.integrate(lambda tau, yy: field(theta, tau, yy), y, dense)
         return y1, (ys, ok)
 
-    yf, (ys, oks) = lax.scan(body, y0, jnp.arange(num_segments))
+    num_segments = jax.tree.leaves(data)[0].shape[0]
+    yf, (ys, oks) = lax.scan(body, y0, (jnp.arange(num_segments), data))
     return yf, ys, jnp.all(oks)
 
 
-def state_field(problem: Problem, control: AbstractControl, a):
-    """The rescaled vector field of the state: `field(k, tau, x) = h_k f(t, x, u_k(tau))`."""
+def segment_data(control: AbstractControl, a):
+    """Everything segment k depends on, one row per segment: `[shape coefficients..., t_k, h_k]`."""
     knots = control.knots(a)
+    return jnp.concatenate(
+        [control.segment_table(a), knots[:-1, None], (knots[1:] - knots[:-1])[:, None]], axis=1
+    )
 
-    def field(k, tau, x):
-        h = knots[k + 1] - knots[k]
-        t = knots[k] + h * tau
-        u = control.segment_control(a, k, tau)
-        return h * problem.dynamics(t, x, u, problem.args)
+
+def rescaled_field(problem: Problem, control: AbstractControl):
+    """`field(theta, tau, x) = h f(t_k + h tau, x, u(theta, tau))` for one row `theta` of
+    `segment_data`."""
+
+    def field(theta, tau, x):
+        row, t_k, h = theta[:-2], theta[-2], theta[-1]
+        u = control.local_control(row, h, tau)
+        return h * problem.dynamics(t_k + h * tau, x, u, problem.args)
 
     return field
 
 
 def final_state(problem: Problem, control: AbstractControl, a, simulator: AbstractSimulator):
     """x(tf) and the status of the integration (pure; jit/vmap/jacfwd-able)."""
-    field = state_field(problem, control, a)
-    xf, _, ok = integrate_segments(simulator, control.num_segments, field, problem.x0.astype(a.dtype))
+    field = rescaled_field(problem, control)
+    xf, _, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype))
     return xf, simulation_status(ok, xf)
 
 
@@ -216,9 +230,11 @@ def check_simulator(simulator):
 
 @eqx.filter_jit
 def _simulate(problem, control, a, simulator):
-    field = state_field(problem, control, a)
+    field = rescaled_field(problem, control)
     K = control.num_segments
-    xf, xs, ok = integrate_segments(simulator, K, field, problem.x0.astype(a.dtype), dense=True)
+    xf, xs, ok = integrate_segments(
+        simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True
+    )
     knots = control.knots(a)
     grid = jnp.asarray(simulator.dense_grid())
     h = knots[1:] - knots[:-1]

@@ -46,8 +46,14 @@ class AbstractControl(eqx.Module):
         """Segment boundaries `(num_segments + 1,)`: 0 = t_0 < t_1 < ... < t_K = tf."""
 
     @abc.abstractmethod
-    def segment_control(self, a, k, tau) -> jax.Array:
-        """Control `(num_controls,)` on segment `k` (may be traced) at rescaled time tau in [0, 1]."""
+    def segment_table(self, a) -> jax.Array:
+        """Per-segment shape coefficients, shape `(num_segments, m)`: row k holds everything
+        (besides the knots) that the control on segment k depends on."""
+
+    @abc.abstractmethod
+    def local_control(self, row, h, tau) -> jax.Array:
+        """Control `(num_controls,)` from one row of `segment_table`, the segment's duration
+        `h` and the rescaled time tau in [0, 1]."""
 
     @abc.abstractmethod
     def initial_guess(self, tf, u_start, u_end) -> jax.Array:
@@ -63,6 +69,11 @@ class AbstractControl(eqx.Module):
         """Final time tf(a)."""
         return self.knots(a)[-1]
 
+    def segment_control(self, a, k, tau) -> jax.Array:
+        """Control `(num_controls,)` on segment `k` (may be traced) at rescaled time tau."""
+        knots = self.knots(a)
+        return self.local_control(self.segment_table(a)[k], knots[k + 1] - knots[k], tau)
+
     def __call__(self, a, t) -> jax.Array:
         """u(a, t) for scalar or array `t` in [0, tf]; right-continuous at knots, u(tf) is
         the left limit. Returns shape `t.shape + (num_controls,)`."""
@@ -74,15 +85,6 @@ class AbstractControl(eqx.Module):
         flat_k, flat_tau = k.reshape(-1), tau.reshape(-1)
         u = jax.vmap(lambda kk, tt: self.segment_control(a, kk, tt))(flat_k, flat_tau)
         return u.reshape(t.shape + (self.num_controls,))
-
-    def control_at_time(self, a, k, t) -> jax.Array:
-        """The formula of segment `k` evaluated at physical time `t` (no segment search).
-
-        Differentiating this with respect to `a` at fixed `t` gives the partial derivative
-        du/da used by the unit-solution (variational) method.
-        """
-        knots = self.knots(a)
-        return self.segment_control(a, k, (t - knots[k]) / (knots[k + 1] - knots[k]))
 
     def validate(self, a) -> np.ndarray:
         """Check a concrete parameter vector outside jit; return it as float64 numpy.
@@ -196,9 +198,11 @@ class PiecewiseLinear(AbstractControl):
     def knots(self, a):
         return self._unpack(a)[1]
 
-    def segment_control(self, a, k, tau):
-        ends = self._unpack(a)[0][k]
-        return (ends[0] + (ends[1] - ends[0]) * tau)[None]
+    def segment_table(self, a):
+        return self._unpack(a)[0]
+
+    def local_control(self, row, h, tau):
+        return (row[0] + (row[1] - row[0]) * tau)[None]
 
     def initial_guess(self, tf, u_start, u_end):
         _check_guess(tf)
@@ -262,10 +266,11 @@ class PiecewiseParabolic(AbstractControl):
     def knots(self, a):
         return self._unpack(a)[1]
 
-    def segment_control(self, a, k, tau):
-        coef, knots = self._unpack(a)
-        u0, slope, u1 = coef[k, 0], coef[k, 1], coef[k, 2]
-        h = knots[k + 1] - knots[k]
+    def segment_table(self, a):
+        return self._unpack(a)[0]
+
+    def local_control(self, row, h, tau):
+        u0, slope, u1 = row[0], row[1], row[2]
         return (u0 + slope * h * tau + (u1 - u0 - slope * h) * tau**2)[None]
 
     def initial_guess(self, tf, u_start, u_end):
@@ -320,9 +325,11 @@ class PiecewiseConstant(AbstractControl):
     def knots(self, a):
         return self._unpack(a)[1]
 
-    def segment_control(self, a, k, tau):
-        level = self._unpack(a)[0][k]
-        return (level + 0.0 * tau)[None]
+    def segment_table(self, a):
+        return self._unpack(a)[0][:, None]
+
+    def local_control(self, row, h, tau):
+        return row + 0.0 * tau
 
     def initial_guess(self, tf, u_start, u_end):
         """Levels = the straight line's value at each piece's midpoint."""
@@ -430,16 +437,22 @@ class SaturatedSpline(AbstractControl):
     def knots(self, a):
         return jnp.concatenate([jnp.zeros(1, a.dtype), jnp.cumsum(self.durations(a))])
 
-    def segment_control(self, a, k, tau):
+    def segment_table(self, a):
+        """Row k = [c_k^1..c_k^q, c_{k+1}^1..c_{k+1}^q]."""
+        c = self.coefficients(a)
+        return jnp.concatenate([c[:, :-1].T, c[:, 1:].T], axis=1)
+
+    def local_control(self, row, h, tau):
         # On [0, 1], Sp*(tau) + Sp*(tau - 1) = 1, so g = c_{k+1} + (c_k - c_{k+1}) Sp*(tau),
         # written with one-sided polynomials (no |tau|, whose derivative at the knots would be 0).
-        c = self.coefficients(a)
+        q = self.num_controls
+        c_k, c_next = row[:q], row[q:]
         if self.degree == 0:
             left = 0.5
         else:
             half = 2.0 ** (self.degree - 1)
             left = jnp.where(tau <= 0.5, 1.0 - half * tau**self.degree, half * (1.0 - tau) ** self.degree)
-        g = c[:, k + 1] + (c[:, k] - c[:, k + 1]) * left
+        g = c_next + (c_k - c_next) * left
         return jnp.clip(g, self.lower, self.upper)
 
     def initial_guess(self, tf, u_start, u_end):

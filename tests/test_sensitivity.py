@@ -122,3 +122,13 @@ def test_no_recompilation_when_values_change():
         jt.evaluate(prob, ctrl, a0 - 0.01 * (s + 1))
         jt.simulate(prob, ctrl, a0 - 0.01 * (s + 1))
     assert count == traced + traced_sim  # the second round traced nothing
+
+
+def test_forward_equals_naive_jacfwd_of_the_simulation():
+    """The "forward" path is jacfwd through `final_state`; check it against jacfwd of the
+    dense `simulate` (a different code path through the same integrator)."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(1)
+    sim = jt.RK4(40)
+    J = jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1]
+    J_dense = jax.jacfwd(lambda a: jt.simulate(prob, ctrl, a, simulator=sim).x[-1])(a0)
+    np.testing.assert_allclose(J, J_dense, rtol=1e-12, atol=1e-14)
