@@ -1,0 +1,68 @@
+"""The sequential Kalman filter update: the one place where the search increment is computed.
+
+Given a prior estimate `da` of the increment with covariance `P`, and scalar observations
+z_i = h_i . Da + v_i with independent noise variances r_i, the minimum-variance estimate
+(seed 000 eq. 3.1-3.7, Gauss's norm eq. 2.20) is computed one observation at a time, with no
+matrix inversion (Bryson & Ho form, seed 000 eq. 3.15 / 2.23):
+
+    k  = P h / (r + h P h)
+    da = da + k (z - h da)
+    P  = P - (P h)(P h)^T / (r + h P h)
+
+The last line is written as a symmetric outer product, so P stays exactly symmetric.
+The result equals the batch formula K = P H^T (H P H^T + R)^-1 for any processing order.
+"""
+
+import jax.numpy as jnp
+from jax import lax
+
+
+def sequential_update(da, P, H, z, r, active=None):
+    """Absorb the rows of `H` (shape `(m, p)`) one at a time.
+
+    **Arguments:**
+
+    - `da`: prior estimate, shape `(p,)`.
+    - `P`: prior covariance, shape `(p, p)`, symmetric positive semi-definite.
+    - `H`: observation rows, shape `(m, p)`.
+    - `z`: observations, shape `(m,)`.
+    - `r`: observation noise variances, shape `(m,)`, > 0.
+    - `active`: optional boolean mask `(m,)`; inactive rows are skipped (fixed shapes under
+      jit, with a variable number of observations).
+
+    **Returns:** `(da, P, innovation_variances)`: the posterior estimate and covariance, and
+    h_i P h_i^T + r_i for each row (the denominators, useful diagnostics).
+    """
+    if active is None:
+        active = jnp.ones(z.shape, dtype=bool)
+
+    def absorb(carry, obs):
+        est, cov = carry
+        h, zi, ri, on = obs
+        ph = cov @ h
+        s = ri + h @ ph
+        s_safe = jnp.where(on & (s > 0), s, 1.0)
+        new_est = est + ph * ((zi - h @ est) / s_safe)
+        new_cov = cov - jnp.outer(ph, ph) / s_safe
+        keep = on & (s > 0)
+        return (jnp.where(keep, new_est, est), jnp.where(keep, new_cov, cov)), s
+
+    (da, P), s = lax.scan(absorb, (da, P), (H, z, r, active))
+    return da, P, s
+
+
+def batch_update(da, P, H, z, r):
+    """The same estimate by the batch formula (for tests and reference only)."""
+    S = H @ P @ H.T + jnp.diag(r)
+    K = jnp.linalg.solve(S, H @ P).T
+    return da + K @ (z - H @ da), P - K @ H @ P
+
+
+def projection_matrix(H):
+    """Rosen's projection V = I - H^T (H H^T)^-1 H onto the null space of H (rows independent)."""
+    p = H.shape[1]
+    return jnp.eye(p, dtype=H.dtype) - H.T @ jnp.linalg.solve(H @ H.T, H)
+
+
+__all__ = ["sequential_update", "batch_update", "projection_matrix"]
+

@@ -1,0 +1,75 @@
+"""The sequential Kalman update against the batch formula, order invariance, PSD, and
+Rosen's projection (seed 000 eq. 3.40-3.54)."""
+
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from jaxtraj._kalman import batch_update, projection_matrix, sequential_update
+
+
+def _random_problem(seed, m, p):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(p, p))
+    P = A @ A.T + 0.1 * np.eye(p)
+    H = rng.normal(size=(m, p))
+    z = rng.normal(size=m)
+    r = rng.uniform(0.01, 2.0, size=m)
+    da = rng.normal(size=p)
+    return [jnp.asarray(v) for v in (da, P, H, z, r)]
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(1, 6), p=st.integers(1, 9))
+def test_sequential_equals_batch_in_any_order(seed, m, p):
+    da, P, H, z, r = _random_problem(seed, m, p)
+    want_da, want_P = batch_update(da, P, H, z, r)
+    perm = np.random.default_rng(seed + 1).permutation(m)
+    for order in (np.arange(m), perm, np.arange(m)[::-1]):
+        got_da, got_P, _ = sequential_update(da, P, H[order], z[order], r[order])
+        scale = 1.0 + float(jnp.max(jnp.abs(want_P)))
+        np.testing.assert_allclose(got_da, want_da, rtol=1e-9, atol=1e-9 * scale)
+        np.testing.assert_allclose(got_P, want_P, rtol=1e-9, atol=1e-9 * scale)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(1, 8), p=st.integers(1, 9))
+def test_covariance_stays_symmetric_psd(seed, m, p):
+    da, P, H, z, r = _random_problem(seed, m, p)
+    _, P1, s = sequential_update(da, P, H, z, r)
+    np.testing.assert_array_equal(P1, P1.T)
+    eig = np.linalg.eigvalsh(np.asarray(P1))
+    assert eig.min() >= -1e-10 * max(1.0, eig.max())
+    # the posterior never exceeds the prior: P - P1 is PSD
+    assert np.linalg.eigvalsh(np.asarray(P - P1)).min() >= -1e-9 * float(jnp.max(jnp.abs(P)))
+    assert np.all(np.asarray(s) > 0)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(1, 5), extra=st.integers(1, 5))
+def test_identity_prior_small_noise_gives_rosen_projection(seed, m, extra):
+    p = m + extra  # rows of H independent (almost surely)
+    rng = np.random.default_rng(seed)
+    H = jnp.asarray(rng.normal(size=(m, p)))
+    r = jnp.full(m, 1e-13)
+    _, P1, _ = sequential_update(jnp.zeros(p), jnp.eye(p), H, jnp.zeros(m), r)
+    V = projection_matrix(H)
+    np.testing.assert_allclose(P1, V, atol=1e-9 * float(np.linalg.cond(np.asarray(H))) ** 2)
+    np.testing.assert_allclose(np.asarray(H) @ np.asarray(P1), 0.0, atol=1e-8)
+
+
+def test_minimum_norm_correction_with_zero_prior():
+    """P = I, R -> 0, prior 0: the estimate is the minimum-norm solution of H da = z."""
+    H = jnp.array([[1.0, 2.0, 0.0], [0.0, 1.0, -1.0]])
+    z = jnp.array([1.0, -2.0])
+    da, _, _ = sequential_update(jnp.zeros(3), jnp.eye(3), H, z, jnp.full(2, 1e-14))
+    np.testing.assert_allclose(da, np.linalg.pinv(np.asarray(H)) @ np.asarray(z), atol=1e-10)
+
+
+def test_inactive_rows_are_skipped():
+    da, P, H, z, r = _random_problem(3, 4, 5)
+    active = jnp.array([True, False, True, False])
+    got = sequential_update(da, P, H, z, r, active)
+    want = sequential_update(da, P, H[active], z[active], r[active])
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-12)
+    np.testing.assert_allclose(got[1], want[1], rtol=1e-12, atol=1e-14)
