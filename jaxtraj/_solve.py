@@ -1,0 +1,109 @@
+"""The one driver every solver runs in: `init`, then `step` in a `lax.while_loop` until
+`state.done` or `max_steps`, then `postprocess`. Jit-compiled once per (problem, control,
+solver configuration, simulator, max_steps); vmap-able over starting vectors."""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from ._problem import Problem
+from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
+from ._solution import Solution
+from .controls import AbstractControl
+
+
+class AbstractSolver(eqx.Module):
+    """A solver of the restricted problem as a state machine over an array-only state.
+
+    `state` must carry `done` (bool scalar); `step` performs one trajectory integration.
+    """
+
+    @abc.abstractmethod
+    def init(self, problem, control, a0, simulator, max_steps: int):
+        """Initial state (evaluates a0)."""
+
+    @abc.abstractmethod
+    def step(self, problem, control, simulator, state):
+        """One step (at most one integration with sensitivities); returns the new state."""
+
+    @abc.abstractmethod
+    def postprocess(self, problem, control, simulator, state) -> Solution:
+        """The `Solution` (status MAX_ITERATIONS if the loop ran out of steps)."""
+
+
+@eqx.filter_jit
+def _run(solver, problem, control, a0, simulator, max_steps):
+    state = solver.init(problem, control, a0, simulator, max_steps)
+    dynamic, static = eqx.partition(state, eqx.is_array)
+
+    def cond(dyn):
+        s = eqx.combine(dyn, static)
+        return ~s.done & (s.num_steps < max_steps)
+
+    def body(dyn):
+        new = solver.step(problem, control, simulator, eqx.combine(dyn, static))
+        new_dyn, new_static = eqx.partition(new, eqx.is_array)
+        assert eqx.tree_equal(static, new_static) is True  # trace-time guard: no static drift
+        return new_dyn
+
+    dynamic = lax.while_loop(cond, body, dynamic)
+    return solver.postprocess(problem, control, simulator, eqx.combine(dynamic, static))
+
+
+def solve(
+    problem: Problem,
+    control: AbstractControl,
+    a0,
+    solver: AbstractSolver | None = None,
+    *,
+    simulator: AbstractSimulator = RK4(),
+    max_steps: int = 400,
+) -> Solution:
+    """Solve the restricted problem: minimize G(a) subject to E(a) = 0.
+
+    **Arguments:**
+
+    - `problem`: a `jt.Problem`; `control`: a control family; `a0`: the starting vector.
+    - `solver`: default `jt.KalmanSearch()` (the source thesis's method).
+    - `simulator`: keyword-only, default `jt.RK4(100)`.
+    - `max_steps`: keyword-only cap on candidate integrations (static: changing it
+      recompiles).
+
+    **Returns:** a `jt.Solution`. Jit-compiled; call it under `jax.vmap` for a batch of
+    starting vectors (or use `jt.solve_batch`). Failures are reported in `status`, never
+    raised, and a non-finite candidate trajectory is a rejected step, not a NaN result.
+
+    **Raises:** `ValueError` for bad input (outside jit).
+    """
+    from ._kalman_search import KalmanSearch
+
+    if solver is None:
+        solver = KalmanSearch()
+    if not isinstance(solver, AbstractSolver):
+        raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
+    if not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
+    a0 = check_inputs(problem, control, a0)
+    check_simulator(simulator)
+    return _run(solver, problem, control, a0, simulator, max_steps)
+
+
+def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 400):
+    """`jt.solve` vmapped over the leading axis of `a0s` (shape `(N, num_params)`).
+    Every field of the returned `Solution` gains a leading N axis; one start's failure does
+    not affect the others."""
+    from ._kalman_search import KalmanSearch
+
+    if solver is None:
+        solver = KalmanSearch()
+    a0s = jnp.asarray(a0s, dtype=jnp.float64)
+    if a0s.ndim != 2 or a0s.shape[1] != control.num_params:
+        raise ValueError(f"`a0s` must have shape (N, {control.num_params}); got {a0s.shape}.")
+    # No per-start value checks here: a bad start (NaN, times out of order) must come back
+    # as that start's failure status without stopping the others.
+    check_inputs(problem, control, jnp.asarray(control.initial_guess(1.0, 0.0, 0.0)))
+    check_simulator(simulator)
+    return jax.vmap(lambda a: _run(solver, problem, control, a, simulator, max_steps))(a0s)
