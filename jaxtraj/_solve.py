@@ -60,7 +60,7 @@ def solve(
     solver: AbstractSolver | None = None,
     *,
     simulator: AbstractSimulator = RK4(),
-    max_steps: int = 400,
+    max_steps: int = 3000,
 ) -> Solution:
     """Solve the restricted problem: minimize G(a) subject to E(a) = 0.
 
@@ -91,7 +91,7 @@ def solve(
     return _run(solver, problem, control, a0, simulator, max_steps)
 
 
-def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 400):
+def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 3000):
     """`jt.solve` vmapped over the leading axis of `a0s` (shape `(N, num_params)`).
     Every field of the returned `Solution` gains a leading N axis; one start's failure does
     not affect the others."""
