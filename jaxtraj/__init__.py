@@ -25,6 +25,6 @@ from ._simulate import (  # noqa: E402
 from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
 from ._solution import History as History, Solution as Solution  # noqa: E402
 from ._solve import AbstractSolver as AbstractSolver, solve as solve, solve_batch as solve_batch  # noqa: E402
-from ._status import Status as Status  # noqa: E402
+from ._status import Status as Status, status_name as status_name  # noqa: E402
 
 __version__ = "0.1.0"

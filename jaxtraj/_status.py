@@ -19,3 +19,14 @@ class Status(eqx.Enumeration):
         "The constraint error stopped decreasing while still above tolerance "
         "(a stationary point of the constraint norm)."
     )
+
+
+STATUS_NAMES = ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY")
+
+
+def status_name(status) -> str:
+    """The name (e.g. "SUCCESS") of a concrete, unbatched `Status` item."""
+    for name in STATUS_NAMES:
+        if bool(status == getattr(Status, name)):
+            return name
+    raise ValueError(f"not a concrete jaxtraj Status: {status!r}")

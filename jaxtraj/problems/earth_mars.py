@@ -125,3 +125,20 @@ def thesis_case(n: int):
     return problem(), ctrl, jnp.asarray(ctrl.validate(a0))
 
 
+
+
+# Published tuning per test (seed 000, headers of Tables 5.1-5.13): rho and beta_p0 (beta =
+# beta_p = beta_0 = 1 throughout). Where the OCR lost the value (tests 4 and 6) the default
+# beta_p0 = 2 of the neighbouring tests is used.
+_TUNING = {1: (1.0, 2.0), 2: (1.0, 2.0), 3: (1.0, 4.0), 4: (1.0, 2.0), 5: (1.0, 1.0), 6: (1.0, 2.0), 7: (0.8, 4.0)}
+
+
+def thesis_solver(n: int, **overrides):
+    """`jt.KalmanSearch` with the thesis's published tuning for test `n` (rho, beta_p0);
+    keyword arguments override any field."""
+    from .._kalman_search import KalmanSearch
+
+    if n not in _TUNING:
+        raise ValueError(f"`n` must be a thesis case in 1..7; got {n!r}.")
+    rho, beta_p0 = _TUNING[n]
+    return KalmanSearch(**{"rho": rho, "beta_p0": beta_p0, **overrides})

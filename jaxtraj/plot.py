@@ -1,0 +1,95 @@
+"""Figures (matplotlib, imported lazily; never traced)."""
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def polar_angle(traj):
+    """theta(t) for a planar orbit trajectory with states (radial velocity, radius,
+    tangential velocity): theta' = v_t / r, integrated by the trapezoid rule."""
+    t = np.asarray(traj.t)
+    rate = np.asarray(traj.x[:, 2]) / np.asarray(traj.x[:, 1])
+    dt = np.diff(t)
+    return np.concatenate([[0.0], np.cumsum(0.5 * dt * (rate[1:] + rate[:-1]))])
+
+
+def orbit_plane(ax, traj, r_target, *, label="transfer", color="C0"):
+    """The transfer in the orbital plane, with the initial (r = 1) and target orbits."""
+    theta = polar_angle(traj)
+    r = np.asarray(traj.x[:, 1])
+    circle = np.linspace(0, 2 * np.pi, 361)
+    ax.plot(np.cos(circle), np.sin(circle), color="0.55", lw=1, ls="--", label="initial orbit (r = 1)")
+    ax.plot(r_target * np.cos(circle), r_target * np.sin(circle), color="C3", lw=1, ls="--",
+            label=f"target orbit (r = {r_target:g})")
+    ax.plot(r * np.cos(theta), r * np.sin(theta), color=color, lw=2, label=label)
+    ax.plot([r[-1] * np.cos(theta[-1])], [r[-1] * np.sin(theta[-1])], "o", color=color)
+    ax.plot([0], [0], marker="*", color="orange", ms=12, ls="none", label="Sun")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [r0 = 1 AU]")
+    ax.set_ylabel("y [r0 = 1 AU]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+
+
+def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=None):
+    """A 2x2 figure: control history, states, convergence history, and (for orbit
+    transfers, when `r_target` is given) the trajectory in the orbital plane."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    t = np.asarray(traj.t)
+    ax = axes[0, 0]
+    for j, name in enumerate(problem.control_names):
+        ax.plot(t, np.asarray(traj.u[:, j]), lw=2, label=name)
+    for k in np.asarray(traj.knots)[1:-1]:
+        ax.axvline(k, color="0.8", lw=0.8, zorder=0)
+    ax.set_xlabel("time [normalized units]")
+    ax.set_ylabel("control")
+    ax.set_title("control history (grey: segment boundaries)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+    ax = axes[0, 1]
+    for j, name in enumerate(problem.state_names):
+        ax.plot(t, np.asarray(traj.x[:, j]), lw=1.5, label=name)
+    ax.set_xlabel("time [normalized units]")
+    ax.set_ylabel("state [normalized units]")
+    ax.set_title("state histories")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]
+    n = int(sol.steps)
+    h = sol.history
+    steps = np.arange(1, n + 1)
+    ax.semilogy(steps, np.asarray(h.max_constraint_error[:n]), color="C3", lw=1.5, label="max |E_i| (left)")
+    ax.semilogy(steps, np.asarray(h.constraint_tolerance[:n]), color="C3", lw=0.8, ls=":", label="e_a in force")
+    ax.set_xlabel("candidate step (one integration each)")
+    ax.set_ylabel("max constraint error")
+    ax.grid(alpha=0.3, which="both")
+    ax2 = ax.twinx()
+    ax2.plot(steps, np.asarray(h.objective[:n]), color="C0", lw=1.5, label="objective (right)")
+    ax2.set_ylabel("objective")
+    lines = ax.get_lines() + ax2.get_lines()
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
+    ax.set_title("convergence")
+
+    ax = axes[1, 1]
+    if r_target is not None:
+        orbit_plane(ax, traj, r_target)
+        ax.set_title("trajectory in the orbital plane")
+    else:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
