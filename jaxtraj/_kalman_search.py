@@ -174,7 +174,11 @@ class KalmanSearch(AbstractSolver):
         s_bar = (c * jnp.sign(E) + jnp.sqrt(q)) / absE
         s = jnp.where(s_bar <= 2.0, 0.5 * s_bar, 1.0)
         z = -s * E  # [4.6]
-        da, P1, _ = sequential_update(prior, P, H, z, jnp.full(E.shape, r))
+        # R = e_m^2/3 [4.2], floored at 1e-12 h P h^T: beyond a ratio P/R of ~1e12 the
+        # sequential update loses the covariance to round-off (the floor changes the
+        # absorbed correction by at most 1e-12 of itself).
+        r_obs = jnp.maximum(r, 1e-12 * (q - r))
+        da, P1, _ = sequential_update(prior, P, H, z, r_obs)
         # appendix C: keep the knots ordered
         gaps = knots[1:] - knots[:-1]
         D = dknots[1:] - dknots[:-1]  # d(gap)/da, (K, np)
