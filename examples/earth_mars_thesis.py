@@ -34,7 +34,7 @@ def reproduce(cases=range(1, 8), verbose=True):
         warm = time.perf_counter() - t0
         # Independent reference: SLSQP from the published start and from our solution; the
         # better feasible optimum counts (cases 6 and 7 have many local minima).
-        refs = [solve_slsqp(prob, ctrl, a) for a in (a0, sol.params)]
+        refs = [solve_slsqp(prob, ctrl, a, maxiter=3000) for a in (a0, sol.params)]
         refs = [r for r in refs if r.max_constraint_error <= 1e-9]
         ref = min(refs, key=lambda r: r.tf) if refs else None
         row = dict(

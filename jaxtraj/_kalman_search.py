@@ -155,7 +155,6 @@ class KalmanSearch(AbstractSolver):
     def _increment(self, ev: Evaluation, rho, beta, beta_p, phase, knots, dknots):
         """Da by the sequential filter (sections 3-4 of ALGORITHM.md) and appendix C."""
         G_a, H, E = ev.G_a, ev.H, ev.E
-        npar = G_a.shape[0]
         e_m2 = self.e_m**2
         r = e_m2 / 3.0  # [4.2]
         hh = jnp.sum(H * H, axis=1)
@@ -174,10 +173,10 @@ class KalmanSearch(AbstractSolver):
         s_bar = (c * jnp.sign(E) + jnp.sqrt(q)) / absE
         s = jnp.where(s_bar <= 2.0, 0.5 * s_bar, 1.0)
         z = -s * E  # [4.6]
-        # R = e_m^2/3 [4.2], floored at 1e-12 h P h^T: beyond a ratio P/R of ~1e12 the
+        # R = e_m^2/3 [4.2], floored at 1e-14 h P h^T: beyond a ratio P/R of ~1e14 the
         # sequential update loses the covariance to round-off (the floor changes the
-        # absorbed correction by at most 1e-12 of itself).
-        r_obs = jnp.maximum(r, 1e-12 * (q - r))
+        # absorbed correction by at most 1e-14 of itself).
+        r_obs = jnp.maximum(r, 1e-14 * (q - r))
         da, P1, _ = sequential_update(prior, P, H, z, r_obs)
         # appendix C: keep the knots ordered
         gaps = knots[1:] - knots[:-1]
@@ -191,7 +190,6 @@ class KalmanSearch(AbstractSolver):
         shrink_needed = (D @ da2) < 0
         limit = jnp.where(shrink_needed & (new_gaps < floor), (gaps - floor) / jnp.maximum(-(D @ da2), 1e-300), 1.0)
         da2 = da2 * jnp.minimum(1.0, jnp.min(limit))
-        del npar
         return da2, P2, s_bar
 
     def _preliminary(self, ev, rho, beta, beta_p, phase, e_a, knots, dknots):

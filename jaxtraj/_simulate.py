@@ -200,8 +200,8 @@ class Trajectory(eqx.Module):
         return self.knots[..., -1]
 
 
-def check_inputs(problem: Problem, control: AbstractControl, a):
-    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+def check_problem_and_control(problem: Problem, control: AbstractControl):
+    """Outside-jit type and compatibility checks of the public entry points."""
     if not jax.config.jax_enable_x64:
         raise RuntimeError(
             "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
@@ -216,6 +216,11 @@ def check_inputs(problem: Problem, control: AbstractControl, a):
             f"`control` has {control.num_controls} channel(s) but `problem` {problem.name!r} "
             f"expects num_controls={problem.num_controls}."
         )
+
+
+def check_inputs(problem: Problem, control: AbstractControl, a):
+    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+    check_problem_and_control(problem, control)
     if isinstance(a, jax.core.Tracer):
         if a.shape != (control.num_params,):
             raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")

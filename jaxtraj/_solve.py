@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._problem import Problem
-from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
+from ._simulate import RK4, AbstractSimulator, check_inputs, check_problem_and_control, check_simulator
 from ._solution import Solution
 from .controls import AbstractControl
 
@@ -104,6 +104,6 @@ def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimula
         raise ValueError(f"`a0s` must have shape (N, {control.num_params}); got {a0s.shape}.")
     # No per-start value checks here: a bad start (NaN, times out of order) must come back
     # as that start's failure status without stopping the others.
-    check_inputs(problem, control, jnp.asarray(control.initial_guess(1.0, 0.0, 0.0)))
+    check_problem_and_control(problem, control)
     check_simulator(simulator)
     return jax.vmap(lambda a: _run(solver, problem, control, a, simulator, max_steps))(a0s)
