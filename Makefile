@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(PY) examples/earth_mars_main.py
+	$(VENV)/bin/jaxtraj solve earth-mars --case 4 --out results/earth-mars-case4
 
 test: $(STAMP)
 	$(PY) -m pytest -q

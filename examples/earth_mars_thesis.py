@@ -84,10 +84,12 @@ def figure(rows, path):
     fig, ax = plt.subplots(figsize=(10, 6))
     for r in rows:
         traj = jt.simulate(r["prob"], r["ctrl"], r["params"])
-        ax.plot(np.asarray(traj.t), np.asarray(traj.u[:, 0]), lw=1.8,
+        u = np.asarray(traj.u[:, 0])
+        u = np.where(u < -0.5, u + 2 * np.pi, u)  # same branch for every case (angles mod 2 pi)
+        ax.plot(np.asarray(traj.t), u, lw=1.8,
                 label=f"case {r['case']}: {r['control']}, tf = {r['tf']:.5f}")
     ax.set_xlabel("time [normalized units; 1 unit = 58.1 days]")
-    ax.set_ylabel("thrust angle from the local horizontal [rad]")
+    ax.set_ylabel("thrust angle from the local horizontal [rad, mod 2 pi]")
     ax.set_title("Earth-Mars minimum-time transfer: optimal restricted controls of the seven thesis cases")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")

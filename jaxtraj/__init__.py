@@ -8,7 +8,7 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import controls as controls, problems as problems  # noqa: E402
+from . import controls as controls, io as io, problems as problems  # noqa: E402
 from ._problem import Problem as Problem, minimum_time as minimum_time  # noqa: E402
 from ._sensitivity import (  # noqa: E402
     Evaluation as Evaluation,

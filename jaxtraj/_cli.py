@@ -1,0 +1,253 @@
+"""Command line: `jaxtraj problems | solve PROBLEM [...] | reproduce`.
+
+No JAX work at import time; every failure the user can cause ends in a one-line
+`jaxtraj: error: ...` message and exit code 2, never a traceback.
+"""
+
+import argparse
+import datetime
+import os
+import sys
+import time
+
+_PROBLEMS = {
+    "earth-mars": "Minimum-time low-thrust planar Earth-Mars transfer (source thesis, 7 published cases).",
+    "min-energy": "Minimum-energy rest-to-rest double integrator in fixed time (analytic optimum 6).",
+}
+_CONTROLS = (
+    "linear:K (continuous, nodes at fixed fractions of tf), linear-free:K (jumps, free node times), "
+    "parabolic:K, constant:K (free switch times), spline:P:DEGREE:LOWER:UPPER"
+)
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, no usage dump
+        raise _UsageError(message)
+
+
+def _parser():
+    p = _Parser(prog="jaxtraj", description="Trajectory optimization by control restriction.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub.add_parser("problems", help="list the available problems and controls")
+    s = sub.add_parser("solve", help="solve a problem and write results")
+    s.add_argument("problem", help=f"one of: {', '.join(_PROBLEMS)}")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--case", type=int, help="earth-mars: published thesis case 1..7 (default 4)")
+    g.add_argument("--control", help=f"control spec: {_CONTROLS}")
+    s.add_argument("--solver", default="kalman", help="kalman (the thesis's Kalman-filter search)")
+    s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
+    s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
+    s.add_argument("--max-steps", type=int, default=3000, help="cap on candidate integrations")
+    s.add_argument("--out", help="result folder (default results/<problem>-<timestamp>)")
+    s.add_argument("--no-plot", action="store_true", help="do not write figures")
+    r = sub.add_parser("reproduce", help="the seven published Earth-Mars cases vs the thesis")
+    r.add_argument("--out", default="results/reproduce", help="result folder")
+    return p
+
+
+def _positive(name, value):
+    if value < 1:
+        raise _UsageError(f"{name} must be >= 1; got {value}")
+
+
+def parse_control(spec):
+    """A control family from a spec string such as `linear:5` or `spline:4:3:-1.5:1.5`."""
+    import jaxtraj as jt
+
+    parts = spec.split(":")
+    kind, rest = parts[0], parts[1:]
+    try:
+        nums = [float(x) if i >= 2 else int(x) for i, x in enumerate(rest)]
+    except ValueError:
+        raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}") from None
+    makers = {
+        "linear": (1, lambda k: jt.controls.PiecewiseLinear(k)),
+        "linear-free": (1, lambda k: jt.controls.PiecewiseLinear(k, continuous=False, free_times=True)),
+        "parabolic": (1, lambda k: jt.controls.PiecewiseParabolic(k)),
+        "constant": (1, lambda k: jt.controls.PiecewiseConstant(k)),
+        "spline": (4, lambda p, d, lo, hi: jt.controls.SaturatedSpline(p, d, lo, hi)),
+    }
+    if kind not in makers:
+        raise _UsageError(f"unknown control {kind!r} in {spec!r}: expected {_CONTROLS}")
+    count, make = makers[kind]
+    if len(nums) != count:
+        raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}")
+    try:
+        return make(*nums)
+    except ValueError as e:
+        raise _UsageError(f"control spec {spec!r}: {e}") from None
+
+
+def _setup(problem_name, args):
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxtraj as jt
+
+    if problem_name == "earth-mars":
+        EM = jt.problems.earth_mars
+        if args.control:
+            prob = EM.problem()
+            ctrl = parse_control(args.control)
+            a0 = ctrl.initial_guess(3.4, 0.0, 1.5 * np.pi)
+            solver = jt.KalmanSearch()
+            label = args.control
+        else:
+            case = 4 if args.case is None else args.case
+            if case not in range(1, 8):
+                raise _UsageError(f"--case must be in 1..7; got {case}")
+            prob, ctrl, a0 = EM.thesis_case(case)
+            solver = EM.thesis_solver(case)
+            label = f"case {case}"
+        return prob, ctrl, jnp.asarray(a0), solver, label, float(EM.CONSTANTS["rf"])
+    if args.case is not None:
+        raise _UsageError("--case applies to earth-mars only")
+    prob = jt.problems.analytic.min_energy_double_integrator()
+    ctrl = parse_control(args.control or "linear:3")
+    return prob, ctrl, jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)), jt.KalmanSearch(), args.control or "linear:3", None
+
+
+def _enable_compilation_cache():
+    import jax
+
+    folder = os.environ.get("JAXTRAJ_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxtraj", "xla"
+    )
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return folder
+
+
+def _check_out(folder):
+    try:
+        os.makedirs(folder, exist_ok=True)
+        probe = os.path.join(folder, ".write-test")
+        with open(probe, "w") as f:
+            f.write("")
+        os.remove(probe)
+    except OSError as e:
+        raise _UsageError(f"cannot write to --out {folder!r}: {e.strerror or e}") from None
+
+
+def _solve(args):
+    if args.problem not in _PROBLEMS:
+        raise _UsageError(f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}")
+    if args.solver != "kalman":
+        raise _UsageError(f"unknown solver {args.solver!r}; available: kalman")
+    for name in ("starts", "steps", "max_steps"):
+        _positive(f"--{name.replace('_', '-')}", getattr(args, name))
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    out = args.out or os.path.join("results", f"{args.problem}-{stamp}")
+    _check_out(out)
+
+    import jax
+    import numpy as np
+
+    import jaxtraj as jt
+    from jaxtraj import io
+    from jaxtraj.plot import solution_figure
+
+    _enable_compilation_cache()
+    prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
+    sim = jt.RK4(args.steps)
+    print(f"{args.problem} ({label}): {ctrl!r}, {ctrl.num_params} parameters, RK4({args.steps})", flush=True)
+    starts = np.asarray(a0)[None, :].repeat(args.starts, axis=0)
+    if args.starts > 1:
+        rng = np.random.default_rng(args.seed)
+        noise = 0.05 * rng.standard_normal(starts.shape)
+        noise[:, list(ctrl.time_indices)] *= 0.02  # small relative moves keep times ordered
+        starts[1:] += noise[1:]
+    print(f"compiling and solving {args.starts} start(s) ...", flush=True)
+    t0 = time.perf_counter()
+    if args.starts == 1:
+        sol = jax.block_until_ready(jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps))
+        best, ok_count = sol, int(sol.status == jt.Status.SUCCESS)
+    else:
+        sols = jax.block_until_ready(jt.solve_batch(prob, ctrl, starts, solver, simulator=sim, max_steps=args.max_steps))
+        ok = np.asarray(sols.status == jt.Status.SUCCESS)
+        obj = np.where(ok, np.asarray(sols.objective), np.inf)
+        i = int(np.argmin(obj)) if ok.any() else 0
+        best = jax.tree.map(lambda x: x[i], sols)
+        ok_count = int(ok.sum())
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if args.starts == 1:
+        jax.block_until_ready(jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps))
+        second = time.perf_counter() - t0
+    else:
+        second = float("nan")
+    traj = jt.simulate(prob, ctrl, best.params, simulator=sim)
+
+    rows = [("status", jt.status_name(best.status)), ("successful starts", f"{ok_count} / {args.starts}"),
+            ("tf", f"{float(best.tf):.8f}"), ("objective", f"{float(best.objective):.8f}"),
+            ("max constraint error", f"{float(best.max_constraint_error):.2e}")]
+    rows += [(f"  {n}", f"{e:+.2e}") for n, e in zip(prob.constraint_names, np.asarray(best.constraints))]
+    rows += [("projected gradient", f"{float(best.projected_gradient):.2e}"),
+             ("iterations / integrations", f"{int(best.iterations)} / {int(best.integrations)}"),
+             ("time (warm)", f"{second:.3f} s" if second == second else "n/a (batch)"),
+             ("time (first call, incl. compile)", f"{first:.2f} s")]
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"  {k:<{width}}  {v}")
+    inputs = {"problem": args.problem, "control": repr(ctrl), "label": label, "a0": np.asarray(a0),
+              "starts": args.starts, "seed": args.seed, "rk4_steps": args.steps, "max_steps": args.max_steps,
+              "solver": repr(solver), "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__,
+                                                    "python": sys.version.split()[0]}}
+    io.save(out, prob, best, traj, inputs=inputs)
+    written = ["summary.json", "arrays.npz"]
+    if not args.no_plot:
+        solution_figure(prob, ctrl, best, traj, os.path.join(out, "solution.png"), r_target=r_target,
+                        title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}")
+        written.append("solution.png")
+    print(f"wrote {', '.join(written)} to {out}")
+    return 0 if best.status == jt.Status.SUCCESS else 1
+
+
+def _reproduce(args):
+    _check_out(args.out)
+    _enable_compilation_cache()
+    import importlib.util
+
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    path = os.path.join(here, "examples", "earth_mars_thesis.py")
+    if not os.path.exists(path):
+        raise _UsageError("reproduce needs the examples/ folder of a source checkout")
+    spec = importlib.util.spec_from_file_location("earth_mars_thesis", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(args.out)
+    return 0
+
+
+def main(argv=None):
+    try:
+        args = _parser().parse_args(argv)
+        if args.command == "problems":
+            for name, text in _PROBLEMS.items():
+                print(f"{name:12s} {text}")
+            print(f"\ncontrols (--control): {_CONTROLS}")
+            print("earth-mars --case N: the thesis's seven published parametrizations (1..7)")
+            return 0
+        if args.command == "solve":
+            return _solve(args)
+        return _reproduce(args)
+    except _UsageError as e:
+        print(f"jaxtraj: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxtraj: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""End-to-end tests of the command line, run as a subprocess."""
+
+import json
+import os
+import subprocess
+import sys
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(*args, tmp_path):
+    env = {**os.environ, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": ROOT}
+    return subprocess.run([sys.executable, "-m", "jaxtraj", *args], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=600)
+
+
+def test_solve_writes_results_that_load_back(tmp_path):
+    out = tmp_path / "case4"
+    r = run("solve", "earth-mars", "--case", "4", "--steps", "40", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "SUCCESS" in r.stdout and "radial velocity" in r.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS"
+    # the case-4 optimum (RK4 with 40 steps per segment is within 1e-6 of the 100-step one)
+    assert abs(summary["tf"] - 3.32488832) < 1e-5
+    assert set(summary["constraints"]) == {"radial velocity", "radius", "tangential velocity"}
+    assert summary["max_constraint_error"] <= 1e-8
+    assert summary["inputs"]["rk4_steps"] == 40 and "jax" in summary["inputs"]["versions"]
+    with np.load(out / "arrays.npz") as data:
+        assert data["x"].shape[1] == 3 and data["t"].shape[0] == data["u"].shape[0]
+    image = matplotlib.image.imread(out / "solution.png")
+    assert image.ndim == 3 and float(np.var(image)) > 0
+    sol, traj, _ = jt.io.load(out)
+    np.testing.assert_array_equal(np.asarray(sol.params), np.asarray(summary["params"]))
+    assert sol.status == jt.Status.SUCCESS
+    assert np.asarray(traj.x).shape[1] == 3
+
+
+def test_problems_lists_the_problems(tmp_path):
+    r = run("problems", tmp_path=tmp_path)
+    assert r.returncode == 0 and "earth-mars" in r.stdout and "linear:K" in r.stdout
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("solve", "mars"), "unknown problem 'mars'"),
+        (("solve", "earth-mars", "--control", "wiggly:3"), "unknown control 'wiggly'"),
+        (("solve", "earth-mars", "--control", "linear:x"), "malformed control spec 'linear:x'"),
+        (("solve", "earth-mars", "--starts", "0"), "--starts must be >= 1; got 0"),
+        (("solve", "earth-mars", "--case", "9"), "--case must be in 1..7; got 9"),
+        (("solve", "earth-mars", "--solver", "magic"), "unknown solver 'magic'"),
+        (("frobnicate",), "invalid choice"),
+    ],
+)
+def test_bad_input_gives_one_line_error(args, message, tmp_path):
+    r = run(*args, "--out", str(tmp_path / "o"), tmp_path=tmp_path) if args[0] == "solve" else run(*args, tmp_path=tmp_path)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jaxtraj: error:") and message in lines[0], r.stderr
+
+
+def test_unwritable_out(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    r = run("solve", "earth-mars", "--out", str(blocker / "sub"), tmp_path=tmp_path)
+    assert r.returncode == 2 and "cannot write to --out" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path):
+    target = tmp_path / "x.json"
+
+    def failing(f):
+        f.write(b"partial")
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError):
+        jt.io.atomic_write(str(target), failing)
+    assert not target.exists() and list(tmp_path.iterdir()) == []
