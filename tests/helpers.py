@@ -47,3 +47,16 @@ def family_examples():
     sat = jt.controls.SaturatedSpline(4, 0, 0.5, 3.0)
     out.append((prob, sat, jnp.array([0.8, 0.9, 0.85, 0.8, -0.5, 0.9, 2.2, 3.4, 4.0])))
     return out
+
+
+def counting_problem(prob):
+    """A copy of `prob` whose dynamics count how often they are traced: returns
+    `(problem, counter)` with `counter["traces"]`."""
+    counter = {"traces": 0}
+    base = prob.dynamics
+
+    def counting(t, x, u, args):
+        counter["traces"] += 1
+        return base(t, x, u, args)
+
+    return jt.Problem(counting, prob.x0, prob.terminal, prob.constraint_names, args=prob.args), counter

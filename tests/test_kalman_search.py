@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from helpers import counting_problem
+
 import jaxtraj as jt
 from jaxtraj.baselines import solve_slsqp
 
@@ -66,20 +68,13 @@ def test_bad_start_in_a_batch_does_not_spoil_the_others():
 
 def test_solve_compiles_once_for_new_starting_values():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
-    count = 0
-    base = prob.dynamics
-
-    def counting(t, x, u, args):
-        nonlocal count
-        count += 1
-        return base(t, x, u, args)
-
-    prob = jt.Problem(counting, prob.x0, prob.terminal, prob.constraint_names, args=prob.args)
+    prob, counter = counting_problem(prob)
     jt.solve(prob, ctrl, a0, max_steps=50)
-    traced = count
+    traced = counter["traces"]
+    assert traced > 0
     jt.solve(prob, ctrl, a0 + 0.02, max_steps=50)
     jt.solve(prob, ctrl, a0 - 0.02, max_steps=50)
-    assert count == traced
+    assert counter["traces"] == traced
 
 
 def test_iteration_limit_is_a_status_and_history_is_recorded():
