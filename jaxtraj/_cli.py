@@ -5,7 +5,9 @@ No JAX work at import time; every failure the user can cause ends in a one-line
 """
 
 import argparse
+import contextlib
 import datetime
+import io as io_module
 import os
 import sys
 import time
@@ -170,7 +172,9 @@ def _solve(args):
     print(f"compiling and solving {args.starts} start(s) ...", flush=True)
     t0 = time.perf_counter()
     if args.starts == 1:
-        sol = jax.block_until_ready(jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps))
+        sol = jax.block_until_ready(
+            jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps, progress=100)
+        )
         best, ok_count = sol, int(sol.status == jt.Status.SUCCESS)
     else:
         sols = jax.block_until_ready(jt.solve_batch(prob, ctrl, starts, solver, simulator=sim, max_steps=args.max_steps))
@@ -181,8 +185,11 @@ def _solve(args):
         ok_count = int(ok.sum())
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if args.starts == 1:
-        jax.block_until_ready(jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps))
+    if args.starts == 1:  # the same compiled solve again, its progress lines silenced
+        with contextlib.redirect_stdout(io_module.StringIO()):
+            jax.block_until_ready(
+                jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps, progress=100)
+            )
         second = time.perf_counter() - t0
     else:
         second = float("nan")

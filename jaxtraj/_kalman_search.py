@@ -406,6 +406,15 @@ class KalmanSearch(AbstractSolver):
             history=history,
         )
 
+    def progress(self, state: _State):
+        return {
+            "accepted": state.num_iterations,
+            "objective": state.ev.G,
+            "max|E|": jnp.max(jnp.abs(state.ev.E)),
+            "e_a": state.e_a,
+            "rho": state.rho,
+        }
+
     def postprocess(self, problem, control, simulator, state: _State) -> Solution:
         ev = state.ev
         status = Status.where(state.done, state.status, Status.MAX_ITERATIONS)

@@ -33,9 +33,18 @@ class AbstractSolver(eqx.Module):
     def postprocess(self, problem, control, simulator, state) -> Solution:
         """The `Solution` (status MAX_ITERATIONS if the loop ran out of steps)."""
 
+    @abc.abstractmethod
+    def progress(self, state) -> dict:
+        """Scalars worth printing during a long solve (name -> array)."""
+
+
+def _print_progress(step, values):
+    parts = [f"step {int(step):5d}"] + [f"{k} {float(v):.6g}" for k, v in values.items()]
+    print("  " + "  ".join(parts), flush=True)
+
 
 @eqx.filter_jit
-def _run(solver, problem, control, a0, simulator, max_steps):
+def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
     state = solver.init(problem, control, a0, simulator, max_steps)
     dynamic, static = eqx.partition(state, eqx.is_array)
 
@@ -47,6 +56,12 @@ def _run(solver, problem, control, a0, simulator, max_steps):
         new = solver.step(problem, control, simulator, eqx.combine(dyn, static))
         new_dyn, new_static = eqx.partition(new, eqx.is_array)
         assert eqx.tree_equal(static, new_static) is True  # trace-time guard: no static drift
+        if progress_every:
+            lax.cond(
+                (new.num_steps % progress_every == 0) | new.done,
+                lambda: jax.debug.callback(_print_progress, new.num_steps, solver.progress(new)),
+                lambda: None,
+            )
         return new_dyn
 
     dynamic = lax.while_loop(cond, body, dynamic)
@@ -61,6 +76,7 @@ def solve(
     *,
     simulator: AbstractSimulator = RK4(),
     max_steps: int = 3000,
+    progress: int = 0,
 ) -> Solution:
     """Solve the restricted problem: minimize G(a) subject to E(a) = 0.
 
@@ -71,6 +87,8 @@ def solve(
     - `simulator`: keyword-only, default `jt.RK4(100)`.
     - `max_steps`: keyword-only cap on candidate integrations (static: changing it
       recompiles).
+    - `progress`: keyword-only; if > 0, print a progress line every `progress` steps and
+      at the end (from inside the compiled loop, via `jax.debug.callback`).
 
     **Returns:** a `jt.Solution`. Jit-compiled; call it under `jax.vmap` for a batch of
     starting vectors (or use `jt.solve_batch`). Failures are reported in `status`, never
@@ -88,7 +106,9 @@ def solve(
         raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
     a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
-    return _run(solver, problem, control, a0, simulator, max_steps)
+    if not (isinstance(progress, int) and progress >= 0):
+        raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
+    return _run(solver, problem, control, a0, simulator, max_steps, progress)
 
 
 def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 3000):
