@@ -25,6 +25,7 @@ def test_solve_writes_results_that_load_back(tmp_path):
     r = run("solve", "earth-mars", "--case", "4", "--steps", "40", "--out", str(out), tmp_path=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "SUCCESS" in r.stdout and "radial velocity" in r.stdout
+    assert "step " in r.stdout and "max|E|" in r.stdout  # progress lines from the compiled loop
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS"
     # the case-4 optimum (RK4 with 40 steps per segment is within 1e-6 of the 100-step one)
