@@ -157,7 +157,7 @@ def _solve(args):
 
     import jaxtraj as jt
     from jaxtraj import io
-    from jaxtraj.plot import solution_figure
+    from jaxtraj.plot import write_figures
 
     _enable_compilation_cache()
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
@@ -213,9 +213,8 @@ def _solve(args):
     io.save(out, prob, best, traj, inputs=inputs)
     written = ["summary.json", "arrays.npz"]
     if not args.no_plot:
-        solution_figure(prob, ctrl, best, traj, os.path.join(out, "solution.png"), r_target=r_target,
-                        title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}")
-        written.append("solution.png")
+        written += write_figures(out, prob, ctrl, best, traj, r_target=r_target,
+                                 title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}")
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1
 

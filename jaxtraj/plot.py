@@ -39,13 +39,8 @@ def orbit_plane(ax, traj, r_target, *, label="transfer", color="C0"):
     ax.legend(loc="lower left", fontsize=8)
 
 
-def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=None):
-    """A 2x2 figure: control history, states, convergence history, and (for orbit
-    transfers, when `r_target` is given) the trajectory in the orbital plane."""
-    plt = _plt()
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+def plot_controls(ax, problem, traj):
     t = np.asarray(traj.t)
-    ax = axes[0, 0]
     for j, name in enumerate(problem.control_names):
         ax.plot(t, np.asarray(traj.u[:, j]), lw=2, label=name)
     for k in np.asarray(traj.knots)[1:-1]:
@@ -56,7 +51,9 @@ def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=N
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
 
-    ax = axes[0, 1]
+
+def plot_states(ax, problem, traj):
+    t = np.asarray(traj.t)
     for j, name in enumerate(problem.state_names):
         ax.plot(t, np.asarray(traj.x[:, j]), lw=1.5, label=name)
     ax.set_xlabel("time [normalized units]")
@@ -65,31 +62,73 @@ def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=N
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
 
-    ax = axes[1, 0]
+
+def plot_convergence(ax, sol):
+    """max |E_i|, the tolerance e_a in force and |G - G_final| per candidate step (log scale)."""
     n = int(sol.steps)
     h = sol.history
     steps = np.arange(1, n + 1)
-    ax.semilogy(steps, np.asarray(h.max_constraint_error[:n]), color="C3", lw=1.5, label="max |E_i| (left)")
+    G = np.asarray(h.objective[:n])
+    ax.semilogy(steps, np.asarray(h.max_constraint_error[:n]), color="C3", lw=1.5, label="max |E_i|")
     ax.semilogy(steps, np.asarray(h.constraint_tolerance[:n]), color="C3", lw=0.8, ls=":", label="e_a in force")
+    gap = np.abs(G - float(sol.objective))
+    ax.semilogy(steps, np.where(gap > 0, gap, np.nan), color="C0", lw=1.5, label="|objective - final objective|")
     ax.set_xlabel("candidate step (one integration each)")
-    ax.set_ylabel("max constraint error")
+    ax.set_ylabel("error (normalized units)")
     ax.grid(alpha=0.3, which="both")
-    ax2 = ax.twinx()
-    ax2.plot(steps, np.asarray(h.objective[:n]), color="C0", lw=1.5, label="objective (right)")
-    ax2.set_ylabel("objective")
-    lines = ax.get_lines() + ax2.get_lines()
-    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
-    ax.set_title("convergence")
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_title(f"convergence (final objective {float(sol.objective):.8g})")
 
-    ax = axes[1, 1]
+
+def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=None):
+    """A 2x2 overview: control history, states, convergence history, and (for orbit
+    transfers, when `r_target` is given) the trajectory in the orbital plane."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    plot_controls(axes[0, 0], problem, traj)
+    plot_states(axes[0, 1], problem, traj)
+    plot_convergence(axes[1, 0], sol)
     if r_target is not None:
-        orbit_plane(ax, traj, r_target)
-        ax.set_title("trajectory in the orbital plane")
+        orbit_plane(axes[1, 1], traj, r_target)
+        axes[1, 1].set_title("trajectory in the orbital plane")
     else:
-        ax.axis("off")
+        axes[1, 1].axis("off")
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=None):
+    """`solution.png` (overview), `histories.png` (control and states), `convergence.png`
+    and, for orbit transfers, `orbit.png`. Returns the file names written."""
+    import os
+
+    plt = _plt()
+    names = ["solution.png"]
+    solution_figure(problem, control, sol, traj, os.path.join(folder, "solution.png"), title=title, r_target=r_target)
+    fig, axes = plt.subplots(2, 1, figsize=(9, 8), sharex=True)
+    plot_controls(axes[0], problem, traj)
+    plot_states(axes[1], problem, traj)
+    axes[0].set_xlabel("")
+    fig.tight_layout()
+    fig.savefig(os.path.join(folder, "histories.png"), dpi=110)
+    plt.close(fig)
+    names.append("histories.png")
+    fig, ax = plt.subplots(figsize=(9, 5))
+    plot_convergence(ax, sol)
+    fig.tight_layout()
+    fig.savefig(os.path.join(folder, "convergence.png"), dpi=110)
+    plt.close(fig)
+    names.append("convergence.png")
+    if r_target is not None:
+        fig, ax = plt.subplots(figsize=(7, 7))
+        orbit_plane(ax, traj, r_target)
+        ax.set_title(title or "trajectory in the orbital plane", fontsize=10)
+        fig.tight_layout()
+        fig.savefig(os.path.join(folder, "orbit.png"), dpi=110)
+        plt.close(fig)
+        names.append("orbit.png")
+    return names

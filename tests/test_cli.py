@@ -35,8 +35,9 @@ def test_solve_writes_results_that_load_back(tmp_path):
     assert summary["inputs"]["rk4_steps"] == 40 and "jax" in summary["inputs"]["versions"]
     with np.load(out / "arrays.npz") as data:
         assert data["x"].shape[1] == 3 and data["t"].shape[0] == data["u"].shape[0]
-    image = matplotlib.image.imread(out / "solution.png")
-    assert image.ndim == 3 and float(np.var(image)) > 0
+    for name in ("solution.png", "histories.png", "convergence.png", "orbit.png"):
+        image = matplotlib.image.imread(out / name)
+        assert image.ndim == 3 and min(image.shape[:2]) > 300 and float(np.var(image)) > 0, name
     sol, traj, _ = jt.io.load(out)
     np.testing.assert_array_equal(np.asarray(sol.params), np.asarray(summary["params"]))
     assert sol.status == jt.Status.SUCCESS
