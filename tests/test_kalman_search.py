@@ -2,7 +2,6 @@
 cases 4 and 5 checked against scipy SLSQP on the same simulate/Jacobian, jit/vmap
 consistency, no recompilation, failure statuses."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
