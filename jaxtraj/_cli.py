@@ -177,7 +177,19 @@ def _solve(args):
         )
         best, ok_count = sol, int(sol.status == jt.Status.SUCCESS)
     else:
-        sols = jax.block_until_ready(jt.solve_batch(prob, ctrl, starts, solver, simulator=sim, max_steps=args.max_steps))
+        # Up to 10 equal chunks (the last one padded), one compiled batch solve each: progress
+        # per completed chunk without recompiling.
+        size = -(-args.starts // 10)
+        padded = np.concatenate([starts, starts[-1:].repeat(-args.starts % size, axis=0)])
+        parts = []
+        for k in range(0, len(padded), size):
+            parts.append(jax.block_until_ready(
+                jt.solve_batch(prob, ctrl, padded[k:k + size], solver, simulator=sim, max_steps=args.max_steps)))
+            done = min(k + size, args.starts)
+            n_ok = sum(int(np.sum(np.asarray(p.status == jt.Status.SUCCESS))) for p in parts)
+            print(f"  completed {done} / {args.starts} starts ({n_ok} successful so far, "
+                  f"{time.perf_counter() - t0:.1f} s)", flush=True)
+        sols = jax.tree.map(lambda *xs: np.concatenate(xs)[: args.starts], *parts)
         ok = np.asarray(sols.status == jt.Status.SUCCESS)
         obj = np.where(ok, np.asarray(sols.objective), np.inf)
         i = int(np.argmin(obj)) if ok.any() else 0

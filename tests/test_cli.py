@@ -86,3 +86,14 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
     with pytest.raises(RuntimeError):
         jt.io.atomic_write(str(target), failing)
     assert not target.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_multistart_batch_reports_progress_and_best(tmp_path):
+    out = tmp_path / "batch"
+    r = run("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--seed", "2", "--steps", "4",
+            "--no-plot", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "completed 3 / 3 starts" in r.stdout and "3 / 3" in r.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and summary["inputs"]["starts"] == 3
+    assert abs(summary["objective"] - 6.0) < 1e-6  # analytic optimum of the min-energy problem
