@@ -234,16 +234,9 @@ def _solve(args):
 def _reproduce(args):
     _check_out(args.out)
     _enable_compilation_cache()
-    import importlib.util
+    from jaxtraj.reproduce import main as reproduce_main
 
-    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    path = os.path.join(here, "examples", "earth_mars_thesis.py")
-    if not os.path.exists(path):
-        raise _UsageError("reproduce needs the examples/ folder of a source checkout")
-    spec = importlib.util.spec_from_file_location("earth_mars_thesis", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.main(args.out)
+    reproduce_main(args.out)
     return 0
 
 
