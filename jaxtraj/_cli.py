@@ -44,7 +44,7 @@ def _parser():
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
     s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
-    s.add_argument("--max-steps", type=int, default=3000, help="cap on candidate integrations")
+    s.add_argument("--max-steps", type=int, default=5000, help="cap on candidate integrations")
     s.add_argument("--out", help="result folder (default results/<problem>-<timestamp>)")
     s.add_argument("--no-plot", action="store_true", help="do not write figures")
     r = sub.add_parser("reproduce", help="the seven published Earth-Mars cases vs the thesis")

@@ -21,6 +21,8 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
   1/(2 a_t) of its length.
 * Step shrinking [4.40, 4.44, 4.47]: the quadratic model in alpha is solved on a fixed
   grid of alphas (largest admissible one), never below `min_shrink`.
+* Constraint-change cap [4.27-4.28]: the room for the predicted change of E_i is
+  2/3 (f_ea e_a - |E_i|) + |E_i| (the literal reading freezes the search at the band's edge).
 * Adaptation [B.1, B.2]: rho is multiplied by `rho_increase` after an accepted step whose
   nonlinearity was small (factor e_gamma = `linearity_ratio`) with no rejection in the two
   previous steps; the betas are multiplied by `beta_decrease` (floor 1) after an accepted
@@ -244,9 +246,13 @@ class KalmanSearch(AbstractSolver):
         npar = G_a.shape[0]
         init = (rho, beta, beta_p, jnp.zeros(npar), jnp.array(False), jnp.array(0), jnp.zeros(E.shape))
         rho, beta, beta_p, da, ok, _, _ = lax.while_loop(cond, body, init)
-        # [4.27-4.28] minimum search: cap the predicted change of each constraint component
+        # [4.27-4.28] minimum search: cap the predicted change of each constraint component.
+        # OCR: |m'_i - m_i| <= 2 (f_ea e_a - |m_i|) / 3. Read literally it forbids any change,
+        # the correction of E towards 0 included, once E sits at the band's edge, and the
+        # search crawls (case 7 did not converge in 3000 steps). We allow the move to E = 0
+        # plus 2/3 of the remaining band: room = 2/3 (f_ea e_a - |E_i|) + |E_i|.
         dE = jnp.abs(ev.H @ da)
-        room = 2.0 * jnp.maximum(self.f_ea * e_a - jnp.abs(E), 0.0) / 3.0
+        room = 2.0 * jnp.maximum(self.f_ea * e_a - jnp.abs(E), 0.0) / 3.0 + jnp.abs(E)
         cap = jnp.where(dE > room, room / jnp.maximum(dE, 1e-300), 1.0)
         da = jnp.where(phase == 1, da * jnp.minimum(1.0, jnp.min(cap)), da)
         return da, rho, beta, beta_p, ~ok

@@ -75,7 +75,7 @@ def solve(
     solver: AbstractSolver | None = None,
     *,
     simulator: AbstractSimulator = RK4(),
-    max_steps: int = 3000,
+    max_steps: int = 5000,
     progress: int = 0,
 ) -> Solution:
     """Solve the restricted problem: minimize G(a) subject to E(a) = 0.
@@ -111,7 +111,7 @@ def solve(
     return _run(solver, problem, control, a0, simulator, max_steps, progress)
 
 
-def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 3000):
+def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 5000):
     """`jt.solve` vmapped over the leading axis of `a0s` (shape `(N, num_params)`).
     Every field of the returned `Solution` gains a leading N axis; one start's failure does
     not affect the others."""
