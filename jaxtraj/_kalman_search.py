@@ -31,6 +31,12 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
 * Constraint tolerance schedule: the thesis converged at e_a = 1e-2..1e-3 and restarted
   with 1e-3..1e-4. Here the search starts at `e_a_start` and, each time the minimum search
   converges, e_a is divided by `e_a_shrink` (capture phase again) until `e_a` is reached.
+* Convergence tests: SUCCESS is decided by the projected gradient [3.62] alone. [4.15]
+  (|G_a| small) is implied by it (|V G_a| <= |G_a|); [4.20] and the Chebyshev test [4.21]
+  only gate the thesis's check of [3.62] after rejections (and [4.20] cannot trigger with
+  e_m = 1e-10); [4.26, 4.48] (negligible step) end the search as STALLED when [3.62] fails.
+  The initial-constraint checks [4.10-4.11, 4.22-4.23] have nothing to check (I(a) is
+  empty here), and [4.24-4.25] is exact for G = tf (linear in a).
 * Convergence in the minimum search: the projected gradient |V G_a| [3.62] below
   `max(gtol, e_a) (1 + |G|)` (a loose stage needs no tighter stationarity than its band).
   MAXREJ consecutive rejections or a negligible step [4.26, 4.48] without that test
@@ -98,7 +104,7 @@ class KalmanSearch(AbstractSolver):
     - `a_t`: node-time approach ratio of appendix C (>= 1; not printed in the thesis).
       10 lets two knots close at most ~1/10 of their gap per step: with 2, a piece of
       case 7 collapses before the other parameters adapt and the search stalls at tf
-      3.3431; with 10 it keeps all five pieces (tf 3.3366 after 3000 steps).
+      3.3431; with 10 it keeps all five pieces and converges to the best known optimum.
     - `rho_increase`, `rho_decrease`, `beta_increase`, `beta_decrease`: adaptation ratios;
       `rho_max` caps rho (beyond ~1e3 the ratio P / R exceeds what float64 can filter).
     - `linearity_ratio`: e_gamma of [B.2] in (0, 1).

@@ -2,6 +2,7 @@
 cases 4 and 5 checked against scipy SLSQP on the same simulate/Jacobian, jit/vmap
 consistency, no recompilation, failure statuses."""
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -100,3 +101,36 @@ def test_bad_solver_settings():
         jt.solve(prob, ctrl, a0, solver="kalman")
     with pytest.raises(ValueError, match=r"`max_steps` must be an int >= 1"):
         jt.solve(prob, ctrl, a0, max_steps=0)
+
+
+# Restricted optima of the seven parametrizations computed independently with scipy SLSQP
+# from 8-20 starts each (benchmarks/reference_optima.md; RK4(100), max|E| <= 1e-10).
+SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3.32153651,
+                6: 3.36688418, 7: 3.33474663}
+
+
+@pytest.mark.parametrize("case", range(1, 8))
+def test_all_seven_published_cases_converge_to_the_restricted_optimum(case):
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
+    sol = jt.solve(prob, ctrl, a0, jt.problems.earth_mars.thesis_solver(case))
+    assert sol.status == jt.Status.SUCCESS
+    assert float(sol.max_constraint_error) <= 1e-8
+    # issue target: 1e-3 (5e-3 for the many-minima cases 6, 7); reached: a few 1e-6
+    assert abs(float(sol.tf) - SLSQP_OPTIMA[case]) < 1e-5
+
+
+def test_nonfinite_candidate_is_a_rejected_step_not_a_nan_result():
+    """x' = x^2 + u escapes to infinity at t = 1: a candidate with tf = 5 integrates to
+    inf/NaN; the step must be rejected and shrunk, the current point left untouched."""
+    prob = jt.Problem(lambda t, x, u, args: x**2 + u, [1.0], lambda tf, xf, args: xf - 1.5, ("x",))
+    ctrl = jt.controls.PiecewiseConstant(1)
+    solver, sim = jt.KalmanSearch(), jt.RK4(20)
+    a = jnp.array([0.0, 0.2])
+    state = solver.init(prob, ctrl, a, sim, 10)
+    state = eqx.tree_at(lambda s: (s.da_pending, s.has_pending), state, (jnp.array([0.0, 4.8]), jnp.array(True)))
+    new = solver.step(prob, ctrl, sim, state)
+    assert not bool(new.history.accepted[0]) and not bool(new.done)
+    np.testing.assert_array_equal(new.a, a)
+    assert np.all(np.isfinite(np.asarray(new.ev.E))) and np.all(np.isfinite(np.asarray(new.ev.H)))
+    np.testing.assert_allclose(new.da_pending, 0.25 * np.array([0.0, 4.8]))  # shrunk, retried next
+    assert bool(new.has_pending) and float(new.rho) < float(state.rho)
