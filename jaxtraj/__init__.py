@@ -4,7 +4,24 @@ Importing jaxtraj turns on JAX's float64 mode (`jax_enable_x64`): every result o
 package is float64. The public entry points refuse to run if it is turned off afterwards.
 """
 
-import jax as _jax
+import os as _os
+
+# XLA:CPU runs a while loop as one compiled function only when its loop state is "small"
+# (xla_cpu_small_while_loop_byte_threshold); larger loops execute kernel by kernel with a
+# per-kernel dispatch cost. The loop state of a forward-mode Jacobian through RK4 (states x
+# parameters) is just above the default, which made simulation + Jacobian 20x the simulation
+# alone; with the threshold raised it is ~8x (benchmarks/RESULTS.md). The option is read when
+# the CPU backend starts, so it only takes effect if jaxtraj is imported before the first JAX
+# computation. A user's own `--xla_backend_extra_options`, or JAXTRAJ_NO_XLA_TUNING=1, wins.
+if "--xla_backend_extra_options" not in _os.environ.get("XLA_FLAGS", "") and not _os.environ.get(
+    "JAXTRAJ_NO_XLA_TUNING"
+):
+    _os.environ["XLA_FLAGS"] = (
+        _os.environ.get("XLA_FLAGS", "")
+        + " --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
+    ).strip()
+
+import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 
