@@ -19,6 +19,7 @@ Three independent ways to get dx(tf)/da:
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 from ._problem import Problem
 from ._simulate import (
@@ -28,6 +29,7 @@ from ._simulate import (
     check_simulator,
     final_state,
     integrate_segments,
+    rescaled_field,
     segment_data,
     simulation_status,
 )
@@ -38,19 +40,24 @@ METHODS = ("forward", "unit", "fd")
 
 
 def forward_jacobian(problem, control, a, simulator):
-    """`jax.jacfwd` through the whole segment-wise integration.
+    """Forward-mode autodiff, chained segment by segment (and, for RK4, step by step):
+    x_a <- dx1/dx x_a + dx1/dtheta_k theta_k_a with theta_k = row k of `segment_data` and
+    theta_a = dtheta/da computed once. Equal to `jax.jacfwd` of the whole simulation to
+    round-off (tested); see `AbstractSimulator.integrate_linearized` and
+    benchmarks/RESULTS.md for why it is written this way."""
+    data = segment_data(control, a)
+    data_a = jax.jacfwd(segment_data, argnums=1)(control, a)  # (K, m + 2, np)
+    field = rescaled_field(problem, control)
+    x0 = problem.x0.astype(a.dtype)
 
-    (Chaining per-step or per-segment Jacobians by hand was measured slower on CPU: the
-    cost is dominated by the number of XLA operations per integration step, not by the
-    tangent count; see benchmarks/RESULTS.md.)
-    """
+    def body(carry, segment):
+        x, x_a = carry
+        x1, x1_a, ok = simulator.integrate_linearized(field, *segment, x, x_a)
+        return (x1, x1_a), ok
 
-    def f(a):
-        xf, status = final_state(problem, control, a, simulator)
-        return xf, (xf, status)
-
-    jac, (xf, status) = jax.jacfwd(f, has_aux=True)(a)
-    return xf, jac, status
+    init = (x0, jnp.zeros((x0.shape[0], a.shape[0]), a.dtype))
+    (xf, jac), oks = lax.scan(body, init, (data, data_a))
+    return xf, jac, simulation_status(jnp.all(oks), xf, jac)
 
 
 def unit_jacobian(problem, control, a, simulator):

@@ -38,6 +38,29 @@ class AbstractSimulator(eqx.Module):
     def dense_grid(self) -> np.ndarray:
         """The tau values of the dense output of one segment (including 0 and 1)."""
 
+    def integrate_linearized(self, field: Callable, theta, theta_a, x0, x0_a):
+        """Integrate `field(theta, tau, x)` over one segment together with dx/da.
+
+        `theta` is the segment's row of `segment_data` with Jacobian `theta_a = dtheta/da`,
+        `x0_a = dx0/da`. Returns `(x1, x1_a, ok)`, x1_a = dx1/dx0 x0_a + dx1/dtheta theta_a,
+        by forward-mode autodiff of this segment's integration (tangent dimension
+        n + len(theta), whatever len(a) is).
+        """
+
+        def run(x, th):
+            x1, _, ok = self.integrate(lambda tau, y: field(th, tau, y), x, False)
+            return x1, (x1, ok)
+
+        (jx, jth), (x1, ok) = jax.jacfwd(run, argnums=(0, 1), has_aux=True)(x0, theta)
+        return x1, _chain(jx, x0_a, jth, theta_a), ok
+
+
+def _chain(jx, x_a, jth, theta_a):
+    """jx @ x_a + jth @ theta_a as broadcast multiply-sums: XLA:CPU fuses these into the loop
+    body, whereas these tiny `dot`s become separate library calls (measured 4.3x vs 28x the
+    simulation on Earth-Mars case 5)."""
+    return jnp.sum(jx[:, :, None] * x_a[None], axis=1) + jnp.sum(jth[:, :, None] * theta_a[None], axis=1)
+
 
 class RK4(AbstractSimulator):
     """Classical fixed-step Runge-Kutta 4 with `steps` equal steps per segment, in `lax.scan`.
@@ -67,6 +90,27 @@ class RK4(AbstractSimulator):
 
     def dense_grid(self):
         return np.linspace(0.0, 1.0, self.steps + 1)
+
+    def integrate_linearized(self, field, theta, theta_a, x0, x0_a):
+        """Chain the derivative step by step: each RK4 step is differentiated with respect to
+        (x, theta) only (n + len(theta) tangents) and x_a <- dstep/dx x_a + dstep/dtheta
+        theta_a. The same numbers as `jax.jacfwd` through the whole integration (tested to
+        1e-12), 2x faster on CPU."""
+        dt = 1.0 / self.steps
+
+        def one_step(x, th, tau):
+            x1 = self._step(lambda s, y: field(th, s, y), tau, dt, x)
+            return x1, x1
+
+        step_jacobian = jax.jacfwd(one_step, argnums=(0, 1), has_aux=True)
+
+        def body(carry, j):
+            x, x_a = carry
+            (jx, jth), x1 = step_jacobian(x, theta, j * dt)
+            return (x1, _chain(jx, x_a, jth, theta_a)), None
+
+        (x1, x1_a), _ = lax.scan(body, (x0, x0_a), jnp.arange(self.steps, dtype=jnp.float64))
+        return x1, x1_a, jnp.array(True)
 
     @staticmethod
     def _step(field, tau, dt, y):
