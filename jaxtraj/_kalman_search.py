@@ -303,13 +303,13 @@ class KalmanSearch(AbstractSolver):
         ev, a, phase, e_a = state.ev, state.a, state.phase, state.e_a
         knots = control.knots(a)
         dknots = jax.jacfwd(control.knots)(a)
-        da_new, rho, beta, beta_p, stationary = self._preliminary(
-            ev, state.rho, state.beta, state.beta_p, phase, e_a, knots, dknots
+        # A shrunk candidate from a rejected step is retried as it is; only a fresh step
+        # runs the filter and the preliminary re-tuning loop.
+        da, rho, beta, beta_p, stationary = lax.cond(
+            state.has_pending,
+            lambda: (state.da_pending, state.rho, state.beta, state.beta_p, jnp.array(False)),
+            lambda: self._preliminary(ev, state.rho, state.beta, state.beta_p, phase, e_a, knots, dknots),
         )
-        da = jnp.where(state.has_pending, state.da_pending, da_new)
-        rho = jnp.where(state.has_pending, state.rho, rho)
-        beta = jnp.where(state.has_pending, state.beta, beta)
-        beta_p = jnp.where(state.has_pending, state.beta_p, beta_p)
 
         # integrate the candidate (one integration with sensitivities)
         cand = evaluate_restricted(problem, control, a + da, simulator, self.method)
@@ -366,7 +366,7 @@ class KalmanSearch(AbstractSolver):
         # A loose stage is also over when the preliminary checks found no increment that
         # decreases G inside the band [4.14, 4.19]: the search rides the band's edge, where
         # the correction of E costs as much as the gradient step gains.
-        no_descent = (phase == 1) & stationary & ~state.has_pending
+        no_descent = (phase == 1) & stationary
         converged_here = converged_here | (no_descent & ~final_stage & (new_phase == 1))
         next_e_a = jnp.maximum(e_a / self.e_a_shrink, self.e_a)
         advance = converged_here & ~final_stage
@@ -374,7 +374,7 @@ class KalmanSearch(AbstractSolver):
         # MAXREJ or a negligible step without the projected-gradient test [3.62] passing: the
         # thesis only calls that convergence when 3.62 holds; otherwise we report STALLED.
         stalled = ~converged_here & ((n_rej > self.max_rejections) | negligible)
-        stationary_fail = stationary & (phase == 0) & ~accept & ~state.has_pending
+        stationary_fail = stationary & (phase == 0) & ~accept
         stalled = stalled | (no_descent & final_stage & ~converged_here)
         new_e_a = jnp.where(advance, next_e_a, e_a)
         new_phase = jnp.where(advance, jnp.where(maxE <= next_e_a, 1, 0), new_phase).astype(jnp.int32)

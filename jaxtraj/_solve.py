@@ -68,6 +68,19 @@ def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
     return solver.postprocess(problem, control, simulator, eqx.combine(dynamic, static))
 
 
+def _check_solver(solver, max_steps):
+    """The solver to use (default `jt.KalmanSearch()`), after checking it and `max_steps`."""
+    if solver is None:
+        from ._kalman_search import KalmanSearch  # it imports this module
+
+        solver = KalmanSearch()
+    if not isinstance(solver, AbstractSolver):
+        raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
+    if not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
+    return solver
+
+
 def solve(
     problem: Problem,
     control: AbstractControl,
@@ -96,14 +109,7 @@ def solve(
 
     **Raises:** `ValueError` for bad input (outside jit).
     """
-    from ._kalman_search import KalmanSearch
-
-    if solver is None:
-        solver = KalmanSearch()
-    if not isinstance(solver, AbstractSolver):
-        raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
-    if not (isinstance(max_steps, int) and max_steps >= 1):
-        raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
+    solver = _check_solver(solver, max_steps)
     a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     if not (isinstance(progress, int) and progress >= 0):
@@ -115,10 +121,7 @@ def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimula
     """`jt.solve` vmapped over the leading axis of `a0s` (shape `(N, num_params)`).
     Every field of the returned `Solution` gains a leading N axis; one start's failure does
     not affect the others."""
-    from ._kalman_search import KalmanSearch
-
-    if solver is None:
-        solver = KalmanSearch()
+    solver = _check_solver(solver, max_steps)
     a0s = jnp.asarray(a0s, dtype=jnp.float64)
     if a0s.ndim != 2 or a0s.shape[1] != control.num_params:
         raise ValueError(f"`a0s` must have shape (N, {control.num_params}); got {a0s.shape}.")

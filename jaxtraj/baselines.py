@@ -9,14 +9,13 @@ search.
 import dataclasses
 import time
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
 from ._problem import Problem
-from ._sensitivity import _check_method, evaluate_restricted
+from ._sensitivity import _check_method, _evaluate
 from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
 from ._status import Status
 from .controls import AbstractControl
@@ -24,11 +23,6 @@ from .controls import AbstractControl
 #: Minimum gap between consecutive knots (node/switch times) imposed on the search.
 MIN_KNOT_GAP = 1e-6
 
-# One compiled evaluation per (problem, control, simulator, method) structure: problem,
-# control and simulator fields that are arrays are traced, everything else (functions,
-# segment counts, step counts, the method name) is static. Repeated solves of the same
-# problem therefore reuse the compiled code.
-_evaluate_jit = eqx.filter_jit(evaluate_restricted)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,7 +58,7 @@ class _CachedEvaluation:
     so that SLSQP's separate fun / jac / constraint calls at one point cost one integration."""
 
     def __init__(self, problem, control, simulator, method):
-        self._fn = lambda a: _evaluate_jit(problem, control, a, simulator, method)
+        self._fn = lambda a: _evaluate(problem, control, a, simulator, method)
         self._key = None
         self._value = None
         self.count = 0
