@@ -3,7 +3,8 @@
 Prints three tables:
 1. per-call time of x(tf) (simulation) and of x(tf) + dx(tf)/da ("forward" autodiff and the
    "unit" variational method) for Earth-Mars cases 4 and 5, RK4 (100 steps per segment) vs
-   diffrax Tsit5 (rtol 1e-10); the Jacobian/simulation ratio is measured in the same run;
+   diffrax Tsit5 (rtol 1e-10): medians over ROUNDS interleaved rounds, and the median of the
+   per-round Jacobian/simulation ratios;
 2. vmap throughput of the full restricted evaluation (G, G_a, E, H) for batch sizes
    1, 16, 256, 1024 (case 5, RK4 100);
 3. compile times.
@@ -18,10 +19,14 @@ import time
 os.environ.setdefault("EQX_ON_ERROR", "nan")
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 import jaxtraj as jt  # noqa: E402
 from jaxtraj._sensitivity import evaluate_restricted, forward_jacobian, unit_jacobian  # noqa: E402
 from jaxtraj._simulate import final_state  # noqa: E402
+
+
+ROUNDS = 7
 
 
 def timeit(fn, arg, *, min_time=0.3, repeats=5):
@@ -69,9 +74,13 @@ def main():
             }
             for key, fn in fns.items():
                 compiles.append((case, name, key, compile_time(fn, a0)))
-            t = {key: timeit(fn, a0) * 1e6 for key, fn in fns.items()}
-            print(f"| {case} | {name} | {t['sim']:.0f} | {t['forward']:.0f} | {t['forward'] / t['sim']:.1f}x "
-                  f"| {t['unit']:.0f} | {t['unit'] / t['sim']:.1f}x |")
+            # Interleaved rounds, medians: the machine is shared, and a ratio is only meaningful
+            # between timings taken close together.
+            rounds = [{key: timeit(fn, a0, min_time=0.1) * 1e6 for key, fn in fns.items()} for _ in range(ROUNDS)]
+            t = {key: float(np.median([r[key] for r in rounds])) for key in fns}
+            ratio = {key: float(np.median([r[key] / r["sim"] for r in rounds])) for key in ("forward", "unit")}
+            print(f"| {case} | {name} | {t['sim']:.0f} | {t['forward']:.0f} | {ratio['forward']:.1f}x "
+                  f"| {t['unit']:.0f} | {ratio['unit']:.1f}x |")
 
     print("\n| batch N | simulation [evals/s] | sim + Jacobian + G, E, H [evals/s] | per evaluation [us] |")
     print("|---:|---:|---:|---:|")

@@ -25,7 +25,14 @@ import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import controls as controls, io as io, problems as problems  # noqa: E402
+from . import (  # noqa: E402
+    controls as controls,
+    feedback as feedback,
+    io as io,
+    metaheuristics as metaheuristics,
+    problems as problems,
+    rotations as rotations,
+)
 from ._problem import Problem as Problem, minimum_time as minimum_time  # noqa: E402
 from ._sensitivity import (  # noqa: E402
     Evaluation as Evaluation,
@@ -40,6 +47,8 @@ from ._simulate import (  # noqa: E402
     simulate as simulate,
 )
 from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
+from ._kalman_sqp import KalmanSQP as KalmanSQP  # noqa: E402
+from .metaheuristics import Dragonfly as Dragonfly, GreyWolf as GreyWolf, Whale as Whale  # noqa: E402
 from ._solution import History as History, Solution as Solution  # noqa: E402
 from ._solve import AbstractSolver as AbstractSolver, solve as solve, solve_batch as solve_batch  # noqa: E402
 from ._status import Status as Status, status_name as status_name  # noqa: E402

@@ -51,6 +51,30 @@ def sequential_update(da, P, H, z, r, active=None):
     return da, P, s
 
 
+def keep_knots_ordered(da, P, knots, dknots, a_t):
+    """Seed 000 appendix C: keep the segment boundaries in order after the increment `da`.
+
+    Each gap g_i = t_{i+1} - t_i that `da` would close (g_i + dg_i/da . da <= 0) becomes one
+    more observation, filtered after the regular ones: on h* = -dg_i/da (the *approach* of
+    the two knots) z* = g_i / a_t with variance z*^2 / 12 [C.4-C.5] (OCR: the thesis prints
+    the observation, not a_t; see `KalmanSearch.a_t`). If the order is still violated, `da`
+    is scaled so that every gap keeps at least 1/(2 a_t) of its length. Gaps are linear in
+    a, so every step `alpha da` with alpha in [0, 1] keeps the order too.
+
+    `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
+    `(da, P)`.
+    """
+    gaps = knots[1:] - knots[:-1]
+    D = dknots[1:] - dknots[:-1]  # d(gap)/da, (K, p)
+    violated = gaps + D @ da <= 0.0
+    z_star = gaps / a_t
+    da, P, _ = sequential_update(da, P, -D, z_star, (z_star**2) / 12.0 + 1e-300, active=violated)
+    closing = D @ da
+    floor = gaps / (2.0 * a_t)
+    limit = jnp.where((closing < 0) & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
+    return da * jnp.minimum(1.0, jnp.min(limit)), P
+
+
 def batch_update(da, P, H, z, r):
     """The same estimate by the batch formula (for tests and reference only)."""
     S = H @ P @ H.T + jnp.diag(r)
@@ -64,5 +88,5 @@ def projection_matrix(H):
     return jnp.eye(p, dtype=H.dtype) - H.T @ jnp.linalg.solve(H @ H.T, H)
 
 
-__all__ = ["sequential_update", "batch_update", "projection_matrix"]
+__all__ = ["sequential_update", "keep_knots_ordered", "batch_update", "projection_matrix"]
 

@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import sequential_update
+from ._kalman import keep_knots_ordered, sequential_update
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._solve import AbstractSolver
@@ -186,18 +186,7 @@ class KalmanSearch(AbstractSolver):
         # absorbed correction by at most 1e-14 of itself).
         r_obs = jnp.maximum(r, 1e-14 * (q - r))
         da, P1, _ = sequential_update(prior, P, H, z, r_obs)
-        # appendix C: keep the knots ordered
-        gaps = knots[1:] - knots[:-1]
-        D = dknots[1:] - dknots[:-1]  # d(gap)/da, (K, np)
-        violated = gaps + D @ da <= 0.0
-        z_star = gaps / self.a_t
-        da2, P2, _ = sequential_update(da, P1, -D, z_star, (z_star**2) / 12.0 + 1e-300, active=violated)
-        new_gaps = gaps + D @ da2
-        # if still out of order: scale so that every gap keeps >= 1/(2 a_t) of its length
-        floor = gaps / (2.0 * self.a_t)
-        shrink_needed = (D @ da2) < 0
-        limit = jnp.where(shrink_needed & (new_gaps < floor), (gaps - floor) / jnp.maximum(-(D @ da2), 1e-300), 1.0)
-        da2 = da2 * jnp.minimum(1.0, jnp.min(limit))
+        da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t)  # appendix C
         return da2, P2, s_bar
 
     def _preliminary(self, ev, rho, beta, beta_p, phase, e_a, knots, dknots):

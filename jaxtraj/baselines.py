@@ -39,6 +39,8 @@ class SLSQPResult:
     - `success`: SLSQP reported convergence and the final evaluation is finite.
     - `message`: SLSQP's message (or the simulation status message on failure).
     - `wall_time`: seconds for the whole call, compilation included.
+    - `history_objective`, `history_max_constraint_error`: G and max |E| at every integrated
+      point, in order (for convergence plots against the number of integrations).
     """
 
     params: np.ndarray
@@ -51,6 +53,8 @@ class SLSQPResult:
     success: bool
     message: str
     wall_time: float
+    history_objective: np.ndarray
+    history_max_constraint_error: np.ndarray
 
 
 class _CachedEvaluation:
@@ -62,6 +66,7 @@ class _CachedEvaluation:
         self._key = None
         self._value = None
         self.count = 0
+        self.history = []
 
     def __call__(self, a):
         a = np.asarray(a, dtype=np.float64)
@@ -79,6 +84,7 @@ class _CachedEvaluation:
             }
             self._key = key
             self.count += 1
+            self.history.append((self._value["G"], float(np.max(np.abs(self._value["E"]), initial=0.0))))
         return self._value
 
 
@@ -166,6 +172,8 @@ def solve_slsqp(
         success=bool(res.success) and final["ok"],
         message=message,
         wall_time=time.perf_counter() - start,
+        history_objective=np.array([h[0] for h in ev.history]),
+        history_max_constraint_error=np.array([h[1] for h in ev.history]),
     )
 
 

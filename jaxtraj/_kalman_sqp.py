@@ -1,0 +1,385 @@
+"""A quasi-Newton Kalman SQP: the thesis's sequential filter update as the step of an SQP
+method (ALGORITHM.md section 7).
+
+The thesis's increment is the solution of an equality-constrained quadratic model whose
+Hessian is the inverse of a fixed diagonal covariance. With the covariance P = B^-1, B an
+approximation of the Hessian of the Lagrangian L = G + lambda^T E, the prior mean -P G_a^T
+and the full correction z = -E observed with (almost) no noise, the same sequential update
+returns the SQP step
+
+    d = argmin G_a d + 1/2 d^T B d   subject to   E + H d = 0,
+
+and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a + B d).
+
+Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_solvers.py):
+
+* Hessian. `hessian="bfgs"` (default): B starts from the exact Hessian of the Lagrangian at
+  a0 (forward-over-forward autodiff through the simulation, once), then Powell-damped BFGS
+  updates on the Lagrangian gradient keep it positive definite. `hessian="exact"`: the exact
+  Hessian at every candidate (one second-order integration per step: fewer iterations, more
+  time per iteration). Either exact Hessian is made positive definite by `convexify`
+  (B = nabla^2 L + c H^T H, which leaves the QP's solution unchanged, then lifted
+  eigenvalues where that is not enough).
+* Step rule: backtracking line search on the augmented-Lagrangian merit function
+  phi(a, lambda) = G + lambda^T E + mu/2 |E|^2 over (a + alpha d, lambda + alpha
+  (lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit
+  steps near the solution, so the superlinear rate is not lost to the Maratos effect). The
+  penalty mu rises (never falls) until the directional derivative is at most
+  -1/2 d^T B d. Armijo factor `armijo`; a rejected alpha is replaced by the minimizer of the
+  quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5] alpha.
+* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`),
+  exactly as in `KalmanSearch`.
+* One `step` = one candidate integration (with first-, or with `hessian="exact"`
+  second-order sensitivities), branch-free, so a batch under `vmap` runs the same work for
+  every start.
+* SUCCESS: max |E_i| <= `ctol` and the projected gradient |V G_a| <= `gtol` (1 + |G|).
+  STALLED: the line search needs a step below `min_step`, or the step is negligible
+  against the parameter vector, before the tests pass.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._kalman import keep_knots_ordered, sequential_update
+from ._kalman_search import _projected_gradient
+from ._sensitivity import Evaluation, evaluate_restricted
+from ._solution import History, Solution
+from ._solve import AbstractSolver
+from ._status import Status
+
+
+def bfgs_update(B, s, y, damping=0.2):
+    """Powell-damped BFGS update of a Hessian approximation B with step s, gradient change y.
+
+    If s^T y < damping s^T B s, y is replaced by r = theta y + (1 - theta) B s with theta
+    chosen so that s^T r = damping s^T B s; then B+ = B - B s s^T B / s^T B s + r r^T / s^T r,
+    positive definite whenever B is (Nocedal & Wright, Procedure 18.2, with damping 0.2).
+    The update is skipped (B returned) for a zero or non-finite step.
+    """
+    Bs = B @ s
+    sBs = s @ Bs
+    sy = s @ y
+    theta = jnp.where(sy >= damping * sBs, 1.0, (1.0 - damping) * sBs / jnp.where(sBs - sy > 0, sBs - sy, 1.0))
+    r = theta * y + (1.0 - theta) * Bs
+    sr = s @ r
+    ok = (sBs > 0) & (sr > 0) & jnp.isfinite(sBs) & jnp.all(jnp.isfinite(r))
+    safe = lambda v: jnp.where(ok, v, 1.0)  # noqa: E731
+    B1 = B - jnp.outer(Bs, Bs) / safe(sBs) + jnp.outer(r, r) / safe(sr)
+    return jnp.where(ok, 0.5 * (B1 + B1.T), B)
+
+
+def convexify(hessian, H, min_curvature):
+    """A positive definite B for the QP from an exact Hessian of the Lagrangian.
+
+    B = hessian + c H^T H, with c scaling H^T H to the Hessian (c = |hessian| / |H^T H|,
+    Frobenius norms), then eigenvalues replaced by their absolute values, floored at
+    `min_curvature` x the largest. The added term is the constant c/2 |E|^2 on the QP's
+    feasible set, so where it alone makes B positive definite (near a minimum with a
+    positive definite reduced Hessian) the QP's solution is the Newton-SQP step. A larger
+    c would guarantee that more often, but it also enters the merit's penalty rule through
+    d^T B d, and the penalty then grows with it: measured on the seven Earth-Mars cases,
+    trying c, 10c, 100c in turn made both Hessian modes fail from most published starts.
+    """
+    HtH = H.T @ H
+    c = jnp.linalg.norm(hessian) / jnp.maximum(jnp.linalg.norm(HtH), 1e-300)
+    w, V = jnp.linalg.eigh(hessian + c * HtH)
+    w = jnp.abs(w)
+    w = jnp.maximum(w, min_curvature * jnp.maximum(jnp.max(w), 1e-300))
+    return (V * w[None, :]) @ V.T
+
+
+def _multipliers(G_a, H):
+    """Least-squares multipliers: H^T lambda ~ -G_a."""
+    return jnp.linalg.lstsq(H.T, -G_a)[0]
+
+
+def _lagrangian_gradient(ev: Evaluation, lam):
+    return ev.G_a + ev.H.T @ lam
+
+
+def _merit(ev: Evaluation, lam, mu):
+    return ev.G + lam @ ev.E + 0.5 * mu * (ev.E @ ev.E)
+
+
+class _State(eqx.Module):
+    a: jax.Array
+    ev: Evaluation
+    lam: jax.Array
+    B: jax.Array
+    mu: jax.Array
+    d: jax.Array  # search direction of the line search in progress
+    dlam: jax.Array
+    alpha: jax.Array
+    phi0: jax.Array
+    dphi0: jax.Array
+    searching: jax.Array  # a line search is in progress (alpha < 1 pending)
+    radius: jax.Array  # step cap |d|_inf
+    num_iterations: jax.Array
+    num_integrations: jax.Array
+    num_steps: jax.Array
+    done: jax.Array
+    status: Status
+    history: History
+
+
+class KalmanSQP(AbstractSolver):
+    """Quasi-Newton SQP whose step is the sequential Kalman update (see the module docs).
+
+    Fields:
+
+    - `hessian`: `"bfgs"` (exact Hessian of the Lagrangian at the start, then damped BFGS)
+      or `"exact"` (exact Hessian at every candidate).
+    - `ctol`: constraint tolerance on max |E_i| (1e-10).
+    - `gtol`: projected-gradient tolerance, relative to 1 + |G| (1e-9).
+    - `a_t`: knot approach ratio of the appendix-C ordering observations (as KalmanSearch).
+    - `armijo`: sufficient-decrease factor of the merit line search.
+    - `min_step`: smallest line-search step before STALLED.
+    - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
+    - `radius`: initial cap on a step's largest component |d_i| (parameter units); doubled
+      after every full step it limited, reset to the accepted length after a shortened one.
+    - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
+      constraints are met to about this fraction of the innovation).
+    - `method`: sensitivity method, `"forward"` or `"unit"` (`"unit"` only with BFGS).
+    """
+
+    hessian: str = "bfgs"
+    ctol: float = 1e-10
+    gtol: float = 1e-9
+    a_t: float = 10.0
+    armijo: float = 1e-4
+    min_step: float = 1e-8
+    min_curvature: float = 1e-8
+    r_rel: float = 1e-12
+    radius: float = 0.5
+    method: str = "forward"
+
+    def __check_init__(self):
+        if self.hessian not in ("bfgs", "exact"):
+            raise ValueError(f"KalmanSQP: `hessian` must be 'bfgs' or 'exact'; got {self.hessian!r}.")
+        if self.method not in ("forward", "unit"):
+            raise ValueError(f"KalmanSQP: `method` must be 'forward' or 'unit'; got {self.method!r}.")
+        if self.hessian == "exact" and self.method != "forward":
+            raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
+        checks = {
+            "ctol": self.ctol > 0,
+            "gtol": self.gtol > 0,
+            "a_t": self.a_t >= 1,
+            "armijo": 0 < self.armijo < 0.5,
+            "min_step": 0 < self.min_step < 1,
+            "min_curvature": 0 < self.min_curvature < 1,
+            "r_rel": 0 < self.r_rel < 1,
+            "radius": self.radius > 0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"KalmanSQP: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+
+    # ------------------------------------------------------------------ evaluations
+
+    def _evaluate(self, problem, control, a, simulator, lam):
+        """The restricted problem at `a`, and (hessian="exact") the convexified Hessian of
+        the Lagrangian with multipliers `lam`, from one integration."""
+        if self.hessian == "bfgs":
+            return evaluate_restricted(problem, control, a, simulator, self.method), None
+        return self._hessian(problem, control, a, simulator, lam)
+
+    def _hessian(self, problem, control, a, simulator, lam):
+        def grad_lagrangian(a):
+            ev = evaluate_restricted(problem, control, a, simulator, self.method)
+            return _lagrangian_gradient(ev, lam), ev
+
+        hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
+        B = convexify(0.5 * (hess + hess.T), ev.H, self.min_curvature)
+        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
+
+    # ------------------------------------------------------------------ the QP step
+
+    def _direction(self, ev: Evaluation, B, knots, dknots):
+        """The SQP step by the sequential filter: prior -P G_a with P = B^-1, observations
+        H d = -E with noise `r_rel` h P h^T; then the appendix-C knot ordering."""
+        P = jnp.linalg.inv(B)
+        P = 0.5 * (P + P.T)
+        prior = -P @ ev.G_a
+        hph = jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H)
+        r = self.r_rel * hph + 1e-300
+        d, P1, _ = sequential_update(prior, P, ev.H, -ev.E, r)
+        # One refinement pass (the same update with the first estimate as prior mean: its
+        # B-metric projection onto H d = -E). When H P H^T is ill-conditioned (rows nearly
+        # dependent in the metric of P), the residual left by a noise r relative to the
+        # diagonal h P h^T is not small (measured 8e-7 = 1.5 |E| on case 7 near its optimum,
+        # cond B 2e7); one pass brings it to 1e-13.
+        d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
+        d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t)
+        lam_qp = jnp.linalg.lstsq(ev.H.T, -(ev.G_a + B @ d))[0]
+        return d, lam_qp
+
+    def _line_search_start(self, ev, lam, mu, B, d, lam_qp):
+        """Penalty update and the merit's value and slope at alpha = 0."""
+        dlam = lam_qp - lam
+        Hd = ev.H @ d
+        c0 = ev.G_a @ d + lam @ Hd + ev.E @ dlam  # slope = c0 + mu c1
+        c1 = ev.E @ Hd
+        dBd = d @ B @ d
+        mu_needed = (c0 + 0.5 * dBd) / jnp.where(c1 < 0, -c1, 1.0)
+        mu = jnp.where((c1 < 0) & (mu < mu_needed), 2.0 * mu_needed, mu)
+        return dlam, mu, _merit(ev, lam, mu), c0 + mu * c1
+
+    # ------------------------------------------------------------------ state machine
+
+    def init(self, problem, control, a0, simulator, max_steps):
+        ev0 = evaluate_restricted(problem, control, a0, simulator, self.method)
+        lam = _multipliers(ev0.G_a, ev0.H)
+        ev, B = self._hessian(problem, control, a0, simulator, lam)
+        f = jnp.float64
+        nan = jnp.full(max_steps, jnp.nan, f)
+        hist = History(
+            objective=nan,
+            max_constraint_error=nan,
+            rho=nan,
+            phase=jnp.full(max_steps, -1, jnp.int32),
+            accepted=jnp.zeros(max_steps, bool),
+            constraint_tolerance=nan,
+        )
+        ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
+        zero = jnp.zeros_like(a0)
+        return _State(
+            a=a0,
+            ev=ev,
+            lam=jnp.where(jnp.isfinite(lam), lam, 0.0),
+            B=B,
+            mu=jnp.asarray(0.0, f),
+            d=zero,
+            dlam=jnp.zeros_like(lam),
+            alpha=jnp.asarray(1.0, f),
+            phi0=jnp.asarray(0.0, f),
+            dphi0=jnp.asarray(0.0, f),
+            searching=jnp.array(False),
+            radius=jnp.asarray(self.radius, f),
+            num_iterations=jnp.array(0, jnp.int32),
+            num_integrations=jnp.array(2, jnp.int32),
+            num_steps=jnp.array(0, jnp.int32),
+            done=~ok0,
+            status=Status.where(ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)),
+            history=hist,
+        )
+
+    def step(self, problem, control, simulator, state: _State):
+        ev, a, lam = state.ev, state.a, state.lam
+        # A fresh direction (cheap: no integration); kept only when no search is pending.
+        knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
+
+        def start(B):
+            d, lam_qp = self._direction(ev, B, knots, dknots)
+            d_max = jnp.max(jnp.abs(d))
+            capped = d_max > state.radius
+            d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
+            return (d, *self._line_search_start(ev, lam, state.mu, B, d, lam_qp))
+
+        # If B's step is no descent direction for the merit (B degenerated, or the knot
+        # ordering bent the step), restart from a scaled identity. Both are cheap (no
+        # integration), so both are computed: no branch under vmap.
+        B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
+        from_B, from_reset = start(state.B), start(B_reset)
+        reset = ~(from_B[4] < 0)
+        d_new, dlam_new, mu_new, phi0_new, dphi0_new = jax.tree.map(
+            lambda r, b: jnp.where(reset, r, b), from_reset, from_B
+        )
+        fresh = ~state.searching
+        B = jnp.where(fresh & reset, B_reset, state.B)
+        pick = lambda new, old: jnp.where(fresh, new, old)  # noqa: E731
+        d, dlam = pick(d_new, state.d), pick(dlam_new, state.dlam)
+        mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
+        alpha = jnp.where(fresh, 1.0, state.alpha)
+
+        # one integration: the candidate
+        lam_c = lam + alpha * dlam
+        cand, B_exact = self._evaluate(problem, control, a + alpha * d, simulator, lam_c)
+        phi = _merit(cand, lam_c, mu)
+        finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
+        descent = dphi0 < 0
+        # Armijo, relaxed by the merit's round-off (10 eps |phi|): near the solution the
+        # predicted decrease falls below what float64 can resolve.
+        slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))
+        accept = finite & descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)
+
+        # accepted: Hessian update at the new point
+        if B_exact is None:
+            y = _lagrangian_gradient(cand, lam_c) - _lagrangian_gradient(ev, lam_c)
+            B_acc = bfgs_update(B, alpha * d, y)
+        else:
+            B_acc = B_exact
+        # rejected: a shorter step (quadratic interpolation of the merit, safeguarded)
+        curv = (phi - phi0 - dphi0 * alpha) / alpha**2
+        alpha_q = jnp.where(curv > 0, -dphi0 / (2.0 * jnp.where(curv > 0, curv, 1.0)), 0.1 * alpha)
+        alpha_next = jnp.where(finite, jnp.clip(alpha_q, 0.1 * alpha, 0.5 * alpha), 0.1 * alpha)
+
+        new_a = jnp.where(accept, a + alpha * d, a)
+        new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
+        new_lam = jnp.where(accept, lam_c, lam)
+        maxE = jnp.max(jnp.abs(new_ev.E))
+        pg = _projected_gradient(new_ev.G_a, new_ev.H)
+        converged = (maxE <= self.ctol) & (pg <= self.gtol * (1.0 + jnp.abs(new_ev.G)))
+        negligible = jnp.linalg.norm(alpha * d) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
+        stalled = ~converged & ((~accept & (alpha_next < self.min_step)) | ~descent | (accept & negligible))
+        done = converged | stalled
+
+        i = state.num_steps
+        h = state.history
+        history = History(
+            objective=h.objective.at[i].set(new_ev.G),
+            max_constraint_error=h.max_constraint_error.at[i].set(maxE),
+            rho=h.rho.at[i].set(alpha),
+            phase=h.phase.at[i].set(jnp.where(fresh, 1, 2).astype(jnp.int32)),
+            accepted=h.accepted.at[i].set(accept),
+            constraint_tolerance=h.constraint_tolerance.at[i].set(self.ctol),
+        )
+        return _State(
+            a=new_a,
+            ev=new_ev,
+            lam=new_lam,
+            B=jnp.where(accept, B_acc, B),
+            mu=mu,
+            d=d,
+            dlam=dlam,
+            alpha=jnp.where(accept, 1.0, alpha_next),
+            phi0=phi0,
+            dphi0=dphi0,
+            searching=~accept,
+            radius=jnp.where(
+                accept,
+                jnp.where(alpha < 1.0, alpha * jnp.max(jnp.abs(d)), jnp.minimum(2.0 * state.radius, 1e3)),
+                state.radius,
+            ),
+            num_iterations=state.num_iterations + accept.astype(jnp.int32),
+            num_integrations=state.num_integrations + 1,
+            num_steps=i + 1,
+            done=done,
+            status=Status.where(converged, Status.SUCCESS, Status.STALLED),
+            history=history,
+        )
+
+    def progress(self, state: _State):
+        return {
+            "iterations": state.num_iterations,
+            "objective": state.ev.G,
+            "max|E|": jnp.max(jnp.abs(state.ev.E)),
+            "alpha": state.alpha,
+            "mu": state.mu,
+        }
+
+    def postprocess(self, problem, control, simulator, state: _State) -> Solution:
+        ev = state.ev
+        return Solution(
+            params=state.a,
+            tf=ev.tf,
+            objective=ev.G,
+            constraints=ev.E,
+            max_constraint_error=jnp.max(jnp.abs(ev.E)),
+            projected_gradient=_projected_gradient(ev.G_a, ev.H),
+            iterations=state.num_iterations,
+            integrations=state.num_integrations,
+            steps=state.num_steps,
+            status=Status.where(state.done, state.status, Status.MAX_ITERATIONS),
+            history=state.history,
+        )
