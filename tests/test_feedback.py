@@ -1,0 +1,378 @@
+"""Linear-quadratic core (jaxtraj.feedback) against closed forms and scipy: the continuous
+Riccati ODE (seed 001 eq. 1.44), the discrete recursion (1.23-1.24) and its stationary limit,
+the multiplicative-noise gain (2.19), the additive-noise cost (2.20 / 3.87), zero-order hold,
+and covariance propagation."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+from jaxtraj.feedback import (
+    continuous_lqr,
+    discrete_lqr,
+    propagate_covariance,
+    propagate_covariance_continuous,
+    zoh_discretize,
+)
+
+
+def _rel(got, want):
+    got, want = np.asarray(got), np.asarray(want)
+    return float(np.max(np.abs(got - want)) / np.max(np.abs(want)))
+
+
+def _scalar_riccati(t, a, b, q, r, qf, tf):
+    """Closed form of -s' = 2 a s - (b^2/r) s^2 + q, s(tf) = qf. With tau = tf - t,
+    beta = b^2/r and roots s+- = (a +- lam)/beta of beta s^2 - 2 a s - q, lam = sqrt(a^2 + beta q):
+    d/dtau ln((s - s+)/(s - s-)) = -2 lam, so w = (s - s+)/(s - s-) = w(tf) e^{-2 lam tau} and
+    s = (s+ - s- w) / (1 - w)."""
+    beta = b * b / r
+    lam = np.sqrt(a * a + beta * q)
+    sp, sm = (a + lam) / beta, (a - lam) / beta
+    w = (qf - sp) / (qf - sm) * np.exp(-2 * lam * (tf - t))
+    return (sp - sm * w) / (1 - w)
+
+
+def _rand_system(seed, n, m, rho=None):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    if rho is not None:
+        A *= rho / np.max(np.abs(np.linalg.eigvals(A)))
+    B = rng.normal(size=(n, m))
+    L = rng.normal(size=(n, n))
+    Q = L @ L.T / n + 0.1 * np.eye(n)
+    M = rng.normal(size=(m, m))
+    R = M @ M.T / m + 0.5 * np.eye(m)
+    return A, B, Q, R
+
+
+# ---------------------------------------------------------------------------------------------
+# Continuous Riccati
+# ---------------------------------------------------------------------------------------------
+
+
+def _scalar(a, b):
+    return lambda t: jnp.array([[a]]), lambda t: jnp.array([[b]])
+
+
+def test_scalar_continuous_matches_closed_form():
+    """S, K against the closed form; additive noise (intensity w) leaves them unchanged and adds
+    c(t0) = int_t0^tf tr(S W) dt to the expected cost (seed eq. 3.87)."""
+    a, b, q, r, qf, tf, w = 0.7, 1.3, 2.0, 0.5, 0.3, 2.0, 0.3
+    g = continuous_lqr(*_scalar(a, b), [[q]], [[r]], [[qf]], 0.0, tf, noise=[[w]])
+    s = _scalar_riccati(np.asarray(g.ts), a, b, q, r, qf, tf)
+    assert g.S.dtype == jnp.float64 and g.K.shape == (101, 1, 1)
+    assert _rel(g.S[:, 0, 0], s) < 1e-8
+    assert _rel(g.K[:, 0, 0], b * s / r) < 1e-8
+    c, _ = scipy.integrate.quad(
+        lambda t: w * _scalar_riccati(t, a, b, q, r, qf, tf), 0.0, tf, epsabs=1e-14
+    )
+    assert abs(float(g.c[0]) - c) < 1e-9 * c and float(g.c[-1]) == 0.0
+    assert abs(float(g.expected_cost(jnp.array([2.0]))) - (4 * s[0] + c)) < 1e-8
+    # u = -K x, linear interpolation of K between samples
+    mid = 0.5 * (g.ts[3] + g.ts[4])
+    np.testing.assert_allclose(g.gain(g.ts[3]), g.K[3], rtol=1e-14)
+    np.testing.assert_allclose(g.gain(mid), 0.5 * (g.K[3] + g.K[4]), rtol=1e-14)
+    np.testing.assert_allclose(
+        g.control(mid, jnp.array([2.0])), -2.0 * g.gain(mid)[:, 0], rtol=1e-14
+    )
+
+
+def test_jit_and_vmap_through_continuous():
+    a, b, r, qf, tf = -0.3, 1.0, 1.0, 0.0, 1.0
+    qs = jnp.array([0.5, 2.0, 8.0])
+    run = lambda q: continuous_lqr(
+        *_scalar(a, b), q * jnp.eye(1), r * jnp.eye(1), qf * jnp.eye(1), 0.0, tf
+    ).S[:, 0, 0]
+    got = jax.jit(jax.vmap(run))(qs)
+    ts = np.linspace(0.0, tf, 101)
+    for q, s in zip(np.asarray(qs), got):
+        assert _rel(s, _scalar_riccati(ts, a, b, q, r, qf, tf)) < 1e-8
+
+
+def _tv_system(xp):
+    A = lambda t: xp.array([[0.0, 1.0], [-1.0 - 0.5 * xp.sin(t), -0.1 * t]])
+    B = lambda t: xp.array([[0.0], [1.0 + 0.3 * xp.cos(2 * t)]])
+    Q = lambda t: xp.diag(xp.array([1.0 + t, 0.5]))  # time-varying weight (callable)
+    return A, B, Q
+
+
+def test_time_varying_continuous_vs_solve_ivp():
+    R = np.array([[0.2]])
+    Qf = np.array([[2.0, 0.3], [0.3, 1.0]])
+    t0, tf = 0.0, 3.0
+    g = continuous_lqr(*_tv_system(jnp), R, Qf, t0, tf)
+    A, B, Q = _tv_system(np)
+
+    def rhs(t, s):
+        S = s.reshape(2, 2)
+        An, Bn = A(t), B(t)
+        return -(An.T @ S + S @ An - S @ Bn @ np.linalg.solve(R, Bn.T @ S) + Q(t)).ravel()
+
+    ts = np.asarray(g.ts)
+    ref = scipy.integrate.solve_ivp(
+        rhs, (tf, t0), Qf.ravel(), method="DOP853", t_eval=ts[::-1], rtol=1e-12, atol=1e-14
+    )
+    S_ref = ref.y.T[::-1].reshape(-1, 2, 2)
+    assert _rel(g.S, S_ref) < 5e-9
+    np.testing.assert_array_equal(g.S, np.swapaxes(g.S, 1, 2))
+    K_ref = np.stack([np.linalg.solve(R, B(t).T @ S) for t, S in zip(ts, S_ref)])
+    assert _rel(g.K, K_ref) < 5e-9
+
+
+def test_continuous_is_the_limit_of_discrete_zoh():
+    """Discrete LQR on zoh_discretize(A, B, dt) with weights Q dt, R dt -> continuous LQR, O(dt)."""
+    A = np.array([[0.0, 1.0], [-2.0, -0.3]])
+    B = np.array([[0.0], [1.0]])
+    Q, R, Qf, T = np.diag([1.0, 0.2]), np.array([[0.5]]), np.eye(2), 2.0
+    g = continuous_lqr(
+        lambda t: jnp.asarray(A),
+        lambda t: jnp.asarray(B),
+        Q,
+        R,
+        Qf,
+        0.0,
+        T,
+        ts=jnp.linspace(0.0, T, 201),
+    )
+    errs = []
+    for N in (50, 100, 200):
+        dt = T / N
+        Ad, Bd = zoh_discretize(A, B, dt)
+        d = discrete_lqr(
+            jnp.broadcast_to(Ad, (N, 2, 2)), jnp.broadcast_to(Bd, (N, 2, 1)), Q * dt, R * dt, Qf
+        )
+        every = 200 // N
+        errs.append(max(_rel(d.K, g.K[:-1:every]), _rel(d.S, g.S[::every])))
+    ratios = np.array(errs[:-1]) / np.array(errs[1:])
+    assert errs[-1] < 2e-2
+    assert np.all((ratios > 1.8) & (ratios < 2.2)), (errs, ratios)
+
+
+# ---------------------------------------------------------------------------------------------
+# Discrete Riccati
+# ---------------------------------------------------------------------------------------------
+
+
+def test_discrete_converges_to_dare():
+    A, B, Q, R = _rand_system(0, 4, 2)
+    N = 400
+    d = discrete_lqr(
+        np.broadcast_to(A, (N, 4, 4)), np.broadcast_to(B, (N, 4, 2)), Q, R, np.zeros((4, 4))
+    )
+    X = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
+    assert d.S.shape == (N + 1, 4, 4) and d.K.shape == (N, 2, 4)
+    assert _rel(d.S[0], X) < 1e-10
+    assert _rel(d.K[0], K) < 1e-10
+    np.testing.assert_array_equal(d.S[-1], 0.0)
+    np.testing.assert_array_equal(d.c, 0.0)
+
+
+def test_discrete_time_varying_first_steps_by_hand():
+    rng = np.random.default_rng(1)
+    As, Bs = rng.normal(size=(2, 3, 3)), rng.normal(size=(2, 3, 2))
+    _, _, Q, R = _rand_system(1, 3, 2)
+    Qf = np.eye(3)
+    d = discrete_lqr(As, Bs, Q, R, Qf)
+    S = Qf
+    for k in (1, 0):  # seed eq. 1.23-1.24
+        K = np.linalg.solve(R + Bs[k].T @ S @ Bs[k], Bs[k].T @ S @ As[k])
+        S = Q + As[k].T @ S @ (As[k] - Bs[k] @ K)
+        assert _rel(d.K[k], K) < 1e-12 and _rel(d.S[k], S) < 1e-12
+
+
+def _mult_scalar_fixed_point(a, b, q, r, s2):
+    """Positive root of S = q + a^2 S - (a b S)^2 / (r + b^2 S (1 + s2)): with c = b^2 (1 + s2),
+    [c (1 - a^2) + a^2 b^2] S^2 + [r (1 - a^2) - q c] S - q r = 0."""
+    c = b * b * (1 + s2)
+    roots = np.roots([c * (1 - a * a) + a * a * b * b, r * (1 - a * a) - q * c, -q * r])
+    S = float(np.max(roots.real))
+    return S, a * b * S / (r + c * S)
+
+
+def test_multiplicative_scalar_closed_form_and_gain_shrinks():
+    # a^2 sigma^2 / (1 + sigma^2) < 1: mean-square stabilizable, so the recursion converges
+    a, b, q, r, N = 1.05, 0.8, 1.0, 0.5, 400
+    sig2 = jnp.array([0.0, 0.25, 1.0, 2.0])
+    run = lambda s2: discrete_lqr(
+        jnp.full((N, 1, 1), a), jnp.full((N, 1, 1), b), [[q]], [[r]], [[0.0]], multiplicative=s2
+    )
+    d = jax.jit(jax.vmap(run))(sig2)
+    gains = np.asarray(d.K[:, 0, 0, 0])
+    for i, s2 in enumerate(np.asarray(sig2)):
+        S, k = _mult_scalar_fixed_point(a, b, q, r, s2)
+        assert abs(float(d.S[i, 0, 0, 0]) - S) < 1e-10 * S
+        assert abs(gains[i] - k) < 1e-10 * k
+    assert (
+        abs(
+            float(d.S[0, 0, 0, 0])
+            - scipy.linalg.solve_discrete_are([[a]], [[b]], [[q]], [[r]])[0, 0]
+        )
+        < 1e-10
+    )
+    assert np.all(np.diff(gains) < 0)  # larger control-realization error -> more cautious gain
+
+
+def test_multiplicative_matrix_form_generalizes_sigma2():
+    """D = sigma B (one channel) is the seed's (1 + xi) u model; K = (R + (1+s2) B^T S B)^-1 ..."""
+    A, B, Q, R = _rand_system(2, 3, 2, rho=0.9)
+    N, s2 = 30, 0.3
+    As, Bs = np.broadcast_to(A, (N, 3, 3)), np.broadcast_to(B, (N, 3, 2))
+    d1 = discrete_lqr(As, Bs, Q, R, np.eye(3), multiplicative=s2)
+    d2 = discrete_lqr(As, Bs, Q, R, np.eye(3), multiplicative=np.sqrt(s2) * B[None])
+    d3 = discrete_lqr(As, Bs, Q, R, np.eye(3), multiplicative=np.full(N, s2))
+    assert _rel(d2.K, d1.K) < 1e-12 and _rel(d3.K, d1.K) < 1e-14
+    S1 = np.asarray(d1.S[1])  # seed eq. 2.19 at step 0
+    K0 = np.linalg.solve(R + (1 + s2) * B.T @ S1 @ B, B.T @ S1 @ A)
+    assert _rel(d1.K[0], K0) < 1e-12
+
+
+def test_expected_cost_exact_by_enumeration():
+    """Two-point noises have the right first two moments, so enumerating every path gives the
+    exact expected cost: it equals x0^T S0 x0 + c0 (seed eq. 2.14, 2.20), and perturbing any
+    gain increases it (the gains are optimal among linear feedbacks)."""
+    A = np.array([[1.0, 0.2], [-0.3, 0.9]])
+    B = np.array([[0.1], [0.6]])
+    Q, R, Qf = np.diag([1.0, 0.1]), np.array([[0.3]]), np.diag([4.0, 1.0])
+    W = np.array([[0.04, 0.01], [0.01, 0.09]])
+    Lw, s2, N, x0 = np.linalg.cholesky(W), 0.5, 3, np.array([1.0, -2.0])
+    As, Bs = np.broadcast_to(A, (N, 2, 2)), np.broadcast_to(B, (N, 2, 1))
+    d = discrete_lqr(As, Bs, Q, R, Qf, multiplicative=s2, additive=W)
+
+    def expected_cost(Ks):
+        total = 0.0
+        outcomes = list(itertools.product([-1.0, 1.0], repeat=3))  # (xi, e1, e2) per step
+        for path in itertools.product(outcomes, repeat=N):
+            x, J = x0, 0.0
+            for k, (xi, *e) in enumerate(path):
+                u = -Ks[k] @ x
+                J += x @ Q @ x + u @ R @ u
+                x = A @ x + B @ ((1 + np.sqrt(s2) * xi) * u) + Lw @ np.array(e)
+            total += J + x @ Qf @ x
+        return total / len(outcomes) ** N
+
+    K = np.asarray(d.K)
+    J = expected_cost(K)
+    assert abs(J - float(d.expected_cost(jnp.asarray(x0)))) < 1e-12 * J
+    assert (
+        float(d.c[0]) > 0
+        and abs(float(d.c[0]) - sum(np.trace(d.S[k + 1] @ W) for k in range(N))) < 1e-14
+    )
+    for k in range(N):
+        for delta in (-1e-3, 1e-3):
+            Kp = K.copy()
+            Kp[k, 0, 0] += delta
+            assert expected_cost(Kp) > J
+    # additive noise changes only the cost, not the gains
+    d0 = discrete_lqr(As, Bs, Q, R, Qf, multiplicative=s2)
+    np.testing.assert_allclose(d0.K, d.K, rtol=1e-14)
+    np.testing.assert_allclose(d0.S, d.S, rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------------
+# Zero-order hold and covariance
+# ---------------------------------------------------------------------------------------------
+
+
+def test_zoh_double_integrator():
+    dt = 0.3
+    Ad, Bd = zoh_discretize(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), dt)
+    np.testing.assert_allclose(Ad, [[1.0, dt], [0.0, 1.0]], atol=1e-15)
+    np.testing.assert_allclose(Bd, [[dt * dt / 2], [dt]], atol=1e-15)
+    A = np.array([[-0.5, 2.0], [-1.0, 0.1]])
+    Ad, Bd = zoh_discretize(A, np.eye(2), dt)  # Bd = A^-1 (e^{A dt} - I)
+    np.testing.assert_allclose(
+        Bd, np.linalg.solve(A, scipy.linalg.expm(A * dt) - np.eye(2)), rtol=1e-13
+    )
+
+
+def test_propagate_covariance_stationary_is_discrete_lyapunov():
+    rng = np.random.default_rng(3)
+    F = rng.normal(size=(3, 3))
+    F *= 0.8 / np.max(np.abs(np.linalg.eigvals(F)))
+    G, W = rng.normal(size=(3, 2)), np.array([[0.5, 0.1], [0.1, 0.2]])
+    Ps = propagate_covariance(np.eye(3), np.broadcast_to(F, (300, 3, 3)), W, G)
+    assert Ps.shape == (301, 3, 3)
+    np.testing.assert_allclose(Ps[1], F @ F.T + G @ W @ G.T, rtol=1e-14)
+    assert _rel(Ps[-1], scipy.linalg.solve_discrete_lyapunov(F, G @ W @ G.T)) < 1e-10
+
+
+def test_propagate_covariance_continuous_stationary_is_lyapunov():
+    F = np.array([[-1.0, 2.0], [-0.5, -1.5]])
+    W = np.array([[0.3, 0.05], [0.05, 0.2]])
+    _, Ps = propagate_covariance_continuous(
+        np.zeros((2, 2)), lambda t: jnp.asarray(F), W, 0.0, 40.0
+    )
+    assert _rel(Ps[-1], scipy.linalg.solve_continuous_lyapunov(F, -W)) < 1e-9
+
+
+def test_closed_loop_covariance_matches_monte_carlo():
+    A, B, Q, R = _rand_system(4, 2, 1)
+    N, W = 20, np.diag([0.01, 0.04])
+    As, Bs = np.broadcast_to(A, (N, 2, 2)), np.broadcast_to(B, (N, 2, 1))
+    d = discrete_lqr(As, Bs, Q, R, np.eye(2), additive=W)
+    Ps = propagate_covariance(np.zeros((2, 2)), As - Bs @ d.K, W)
+
+    def rollout(key):
+        def step(x, inp):
+            K, e = inp
+            return A @ x - B @ (K @ x) + e, None
+
+        e = jax.random.normal(key, (N, 2)) @ jnp.sqrt(jnp.asarray(W))
+        return jax.lax.scan(step, jnp.ones(2), (d.K, e))[0]
+
+    xs = jax.vmap(rollout)(jax.random.split(jax.random.key(0), 20000))
+    np.testing.assert_allclose(
+        np.mean(xs, 0), np.ones(2) @ np.linalg.multi_dot(list((As - Bs @ d.K)[::-1])).T, atol=0.01
+    )
+    assert _rel(np.cov(np.asarray(xs).T), Ps[-1]) < 0.05
+
+
+# ---------------------------------------------------------------------------------------------
+# Transforms and errors
+# ---------------------------------------------------------------------------------------------
+
+
+def test_shape_errors_name_the_argument():
+    A, B = jnp.eye(2)[None], jnp.ones((1, 2, 1))
+    ok = {"Q": jnp.eye(2), "R": jnp.eye(1), "Qf": jnp.eye(2)}
+    with pytest.raises(ValueError, match="`Bs`"):
+        discrete_lqr(A, jnp.ones((1, 3, 1)), **ok)
+    with pytest.raises(ValueError, match="`R`"):
+        discrete_lqr(A, B, jnp.eye(2), jnp.eye(2), jnp.eye(2))
+    with pytest.raises(ValueError, match="`Qf`"):
+        discrete_lqr(A, B, jnp.eye(2), jnp.eye(1), jnp.eye(3))
+    with pytest.raises(ValueError, match="`multiplicative`"):
+        discrete_lqr(A, B, **ok, multiplicative=jnp.ones((2, 2)))
+    with pytest.raises(ValueError, match="`additive`"):
+        discrete_lqr(A, B, **ok, additive=jnp.eye(3))
+    with pytest.raises(ValueError, match="`B_fn`"):
+        continuous_lqr(
+            lambda t: jnp.eye(2),
+            lambda t: jnp.ones((3, 1)),
+            jnp.eye(2),
+            jnp.eye(1),
+            jnp.eye(2),
+            0.0,
+            1.0,
+        )
+    with pytest.raises(ValueError, match="`Q`"):
+        continuous_lqr(
+            lambda t: jnp.eye(2),
+            lambda t: jnp.ones((2, 1)),
+            jnp.eye(3),
+            jnp.eye(1),
+            jnp.eye(2),
+            0.0,
+            1.0,
+        )
+    with pytest.raises(ValueError, match="`B`"):
+        zoh_discretize(jnp.eye(2), jnp.ones((3, 1)), 0.1)
+    with pytest.raises(ValueError, match="`W`"):
+        propagate_covariance(jnp.eye(2), A, jnp.eye(3))
