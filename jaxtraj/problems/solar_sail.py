@@ -1,0 +1,595 @@
+"""Minimum-time planar solar-sail transfers from Earth's orbit to Mercury's, Venus's or Mars's
+(seed 003; Kelley's Earth-to-Mars-orbit sail problem as the anchor).
+
+States (normalized units: 1 AU, mu = 1, 1 time unit = 1 / (2 pi) year): r radius, theta
+polar angle, u radial velocity, v tangential velocity. Control alpha: the sail's pitch angle
+in [-pi/2, pi/2]. Ideal flat sail with characteristic acceleration a0 (at 1 AU, sail facing
+the Sun):
+
+    r'     = u
+    theta' = v / r
+    u'     = v^2 / r - mu / r^2 + a0 cos^3(alpha) / r^2
+    v'     = -u v / r + a0 cos^2(alpha) sin(alpha) / r^2
+
+x(0) = (1, 0, 0, sqrt(mu)) (Earth's circular orbit); at the free final time tf: r = r_f, u = 0,
+v = sqrt(mu / r_f) (the target's circular orbit), theta free; minimize tf.
+
+!!! note "Pitch-angle convention (seed 003, eq. of plane motion)"
+    alpha is the angle from the Sun-line (the outward radius vector, along the sunlight) to
+    the normal of the sail's back (shadow) side, positive towards the direction of motion.
+    The seed writes exactly these right-hand sides (with r_0 = g_0 = 1): alpha > 0 gives a
+    prograde tangential push (spiral outwards, Mars), alpha < 0 a retrograde one (spiral
+    inwards, Venus, Mercury), alpha = +-pi/2 turns the sail edge-on (no thrust, "feathered").
+    The radial push a0 cos^3(alpha) / r^2 is never negative: a sail cannot pull towards the Sun.
+
+!!! note "Pitch angles outside [-pi/2, pi/2]"
+    The problem's control bounds are [-pi/2, pi/2] and the seed's `SaturatedSpline` stays in
+    them. Control families without bounds (`PiecewiseLinear`, ...) can leave them, and the
+    seed's formulas read literally would then give an *attracting* sail (cos^3 < 0) that
+    SLSQP gladly exploits (measured: "tf" = 5.53 < the true optimum 6.99 with
+    PiecewiseLinear(8)). `dynamics` therefore uses cos -> |cos|:
+    radial a0 |cos|^3 / r^2, tangential a0 cos |cos| sin / r^2, which equals the seed's
+    formulas on [-pi/2, pi/2] and extends them pi-periodically: alpha and alpha +- pi are
+    the same flat (two-sided ideal) sail, the normal taken on the side away from the Sun.
+
+Besides the constrained problem (`problem`) the module has the seed's penalty functional
+(eq. 5, `penalty_objective`) and the parameter box (`box`) for the metaheuristics, the
+diagnostics that flag spurious outcomes (`terminal_miss`, `feathered_fraction`,
+`diagnose`), Kelley's anchor (`kelley_case`) and an independent indirect (Pontryagin)
+solution of the unrestricted problem (`solve_indirect`), written in NumPy/SciPy without
+any of jaxtraj's integration or differentiation code.
+"""
+
+import dataclasses
+import math
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.integrate
+import scipy.optimize
+
+from .._problem import Problem
+from .._simulate import RK4, AbstractSimulator, check_problem_and_control, check_simulator, final_state
+from .._status import Status
+from ..controls import AbstractControl, SaturatedSpline
+
+#: Mean orbital radii of the targets [AU] (circular, coplanar orbits). Seed 003 Table 1
+#: rounds them to 0.39, 0.72, 1.52.
+TARGET_RADII = {"mercury": 0.387098, "venus": 0.723332, "mars": 1.523679}
+
+#: Kelley's sail: characteristic acceleration 0.17 (~1.0 mm/s^2 at 1 AU: 0.17 * mu_sun / AU^2
+#: = 0.17 * 5.93 mm/s^2) and Mars's radius as Kelley rounds it.
+KELLEY_A0 = 0.17
+KELLEY_RF = 1.5237
+
+#: Kelley's published minimum time Earth -> Mars orbit for the unrestricted control (~406 d).
+TF_KELLEY = 6.9925
+
+#: Our own unrestricted optimum for Kelley's case, from `solve_indirect` (Pontryagin
+#: shooting, DOP853 at rtol = atol = 1e-12, boundary residual < 1e-13; restarts from other
+#: pitch guesses land on the same extremal): 0.01 % above the published 6.9925 (= 406.52 d vs
+#: 406.48 d). Every feasible restricted control we measured lies above it.
+TF_KELLEY_INDIRECT = 6.993186
+
+#: Days per normalized time unit: 1 unit = 1 / (2 pi) year.
+DAYS_PER_UNIT = 365.25 / (2.0 * math.pi)
+
+#: Default weights (lambda_1, ..., lambda_4) of the penalty functional (seed eq. 5; the seed
+#: leaves them open): 1 on tf in days, 1e10 on each squared terminal error. Measured on
+#: Kelley's case (SaturatedSpline(10, 1), J minimized by L-BFGS-B from the constrained
+#: optimum 406.54 d), the penalized minimum with weights w on the errors:
+#:   w = 1e4: 245.2 d, miss 5.6e-2 (the issue's trap: 40 % "faster", not a transfer);
+#:   w = 1e6: 402.1 d, miss 1.3e-3;  w = 1e8: 406.48 d, miss 1.4e-5;
+#:   w = 1e10: 406.54 d, miss 1.4e-7 (the miss scales as ~1.4e3 / w).
+DEFAULT_WEIGHTS = (1.0, 1.0e10, 1.0e10, 1.0e10)
+
+STATE_NAMES = ("radius", "polar angle", "radial velocity", "tangential velocity")
+CONSTRAINT_NAMES = ("radius", "radial velocity", "tangential velocity")
+CONTROL_LOWER = -0.5 * math.pi
+CONTROL_UPPER = 0.5 * math.pi
+
+
+def dynamics(t, x, u, args):
+    """f(t, x, alpha, args) of the planar sail (see the module docstring)."""
+    del t
+    r, v_r, v_t = x[0], x[2], x[3]
+    alpha = u[0]
+    c, s = jnp.cos(alpha), jnp.sin(alpha)
+    # |cos| extends the seed's formula pi-periodically beyond [-pi/2, pi/2] (identical inside).
+    c_abs = jnp.abs(c)
+    sail = args["a0"] / r**2
+    return jnp.stack(
+        [
+            v_r,
+            v_t / r,
+            v_t**2 / r - args["mu"] / r**2 + sail * c_abs**3,
+            -v_r * v_t / r + sail * c * c_abs * s,
+        ]
+    )
+
+
+def terminal(tf, xf, args):
+    """M = (r - r_f, u, v - sqrt(mu / r_f)); theta is free."""
+    del tf
+    r_f = args["r_f"]
+    return jnp.stack([xf[0] - r_f, xf[2], xf[3] - jnp.sqrt(args["mu"] / r_f)])
+
+
+def _target_radius(target, r_f):
+    if r_f is not None:
+        r_f = float(r_f)
+        if not (math.isfinite(r_f) and r_f > 0):
+            raise ValueError(f"`r_f` must be a finite radius > 0 [AU]; got {r_f!r}.")
+        return r_f
+    if not isinstance(target, str) or target.lower() not in TARGET_RADII:
+        raise ValueError(f"`target` must be one of {sorted(TARGET_RADII)}; got {target!r}.")
+    return TARGET_RADII[target.lower()]
+
+
+def problem(target: str = "mars", a0: float = KELLEY_A0, *, r_f: float | None = None, mu: float = 1.0) -> Problem:
+    """The constrained minimum-time sail transfer from Earth's orbit to `target`'s.
+
+    **Arguments:**
+
+    - `target`: `"mars"`, `"venus"` or `"mercury"` (radius from `TARGET_RADII`).
+    - `a0`: characteristic acceleration of the sail (normalized; default Kelley's 0.17).
+    - `r_f`: keyword-only, overrides the target radius (e.g. `KELLEY_RF` = 1.5237).
+    - `mu`: keyword-only, the Sun's gravitational parameter (1 in normalized units).
+
+    **Returns:** a `jt.Problem` with x0 = (1, 0, 0, sqrt(mu)) (Earth's circular orbit; (1, 0, 0, 1)
+    for the default mu = 1; set at construction), terminal constraints (radius,
+    radial velocity, tangential velocity), objective tf, control bounds [-pi/2, pi/2] and
+    `args = {"a0", "r_f", "mu"}` (float64 arrays: change them without recompiling).
+    """
+    radius = _target_radius(target, r_f)
+    a0 = float(a0)
+    if not (math.isfinite(a0) and a0 >= 0):
+        raise ValueError(f"`a0` must be a finite characteristic acceleration >= 0; got {a0!r}.")
+    mu = float(mu)
+    if not (math.isfinite(mu) and mu > 0):
+        raise ValueError(f"`mu` must be finite and > 0; got {mu!r}.")
+    args = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (("a0", a0), ("r_f", radius), ("mu", mu))}
+    name = f"solar-sail-{target.lower()}" if r_f is None else f"solar-sail-r{radius:g}"
+    return Problem(
+        dynamics,
+        x0=[1.0, 0.0, 0.0, math.sqrt(mu)],
+        terminal=terminal,
+        constraint_names=CONSTRAINT_NAMES,
+        args=args,
+        state_names=STATE_NAMES,
+        control_names=("pitch angle [rad]",),
+        control_lower=CONTROL_LOWER,
+        control_upper=CONTROL_UPPER,
+        name=name,
+    )
+
+
+def spline_control(segments: int = 10, degree: int = 1, *, free_durations: bool = True) -> SaturatedSpline:
+    """The seed's control: `SaturatedSpline(segments, degree, -pi/2, pi/2)`."""
+    return SaturatedSpline(segments, degree, CONTROL_LOWER, CONTROL_UPPER, free_durations=free_durations)
+
+
+def kelley_case(segments: int = 10, degree: int = 1, *, pitch_deg: float = 35.0, tf: float = 7.0):
+    """`(problem, control, a)` for Kelley's Earth-to-Mars-orbit anchor.
+
+    `problem(r_f=KELLEY_RF, a0=KELLEY_A0)`, the seed's `SaturatedSpline(segments, degree,
+    -pi/2, pi/2)` with free durations, and the starting vector with equal durations tf / P
+    and a constant pitch of `pitch_deg` (a prograde push). `a` is the parameter vector (not
+    the sail's acceleration, which is `KELLEY_A0`).
+
+    !!! note "SLSQP from this start (measured, `jaxtraj.baselines.solve_slsqp`, RK4(100))"
+        With the defaults (P = 10, p = 1, 35 deg, tf = 7) SLSQP reaches tf = 6.99345
+        (0.004 % above the unrestricted optimum) in 150 iterations but never reports
+        convergence: it collapses some segments to the minimum duration 1e-6, whose
+        coefficients then no longer matter (a singular, degenerate optimum), and it runs to
+        its iteration limit. P = 8 from 35 deg stalls at 7.1225 (+1.8 %); P = 6 ends
+        0.04-0.5 % above. Check results with `diagnose`.
+    """
+    prob = problem("mars", KELLEY_A0, r_f=KELLEY_RF)
+    ctrl = spline_control(segments, degree)
+    alpha = math.radians(pitch_deg)
+    return prob, ctrl, jnp.asarray(ctrl.validate(ctrl.initial_guess(tf, alpha, alpha)))
+
+
+# ---------------------------------------------------------------------- penalty functional
+
+
+def penalty_objective(
+    problem: Problem,
+    control: AbstractControl,
+    *,
+    simulator: AbstractSimulator = RK4(),
+    weights=DEFAULT_WEIGHTS,
+    time_scale: float = DAYS_PER_UNIT,
+):
+    """The seed's penalty functional (eq. 5) as a pure function of the parameters:
+
+        J(a) = lambda_1 time_scale tf(a) + lambda_2 (r(tf) - r_f)^2 + lambda_3 u(tf)^2
+               + lambda_4 (v(tf) - v_f)^2,
+
+    the squared terms being the problem's terminal constraints M(tf, x(tf)). With the
+    default `time_scale = DAYS_PER_UNIT` the first term counts days, as the seed's tf / 86400
+    (tf in seconds) does. A failed or non-finite simulation gives J = +inf.
+
+    **Arguments:**
+
+    - `problem`, `control`: as for `jt.solve` (any problem with 3 terminal constraints).
+    - `simulator`: keyword-only, default `jt.RK4()` (100 steps per segment).
+    - `weights`: keyword-only, `(lambda_1, lambda_2, lambda_3, lambda_4)`, default
+      `DEFAULT_WEIGHTS`; a jnp array may be passed to trace or vmap over them.
+    - `time_scale`: keyword-only, multiplies tf in the first term (1.0: normalized units).
+
+    **Returns:** `J(a) -> scalar`, a pure, `jax.jit`-wrapped function: vmap- and grad-able;
+    for the metaheuristics, `jax.vmap(J)` evaluates a population.
+    """
+    if not isinstance(problem, Problem):
+        raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
+    if not isinstance(control, AbstractControl):
+        raise ValueError(f"`control` must be a jaxtraj control; got {type(control).__name__}.")
+    check_simulator(simulator)
+    l = problem.num_constraints
+    w_shape = np.shape(weights)
+    if w_shape != (l + 1,):
+        raise ValueError(f"`weights` must have {l + 1} entries (time, then one per terminal constraint); got shape {w_shape}.")
+    if not isinstance(weights, jax.Array | jax.core.Tracer):
+        w = np.asarray(weights, dtype=np.float64)
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError(f"`weights` must be finite and >= 0; got {w}.")
+    weights = jnp.asarray(weights, dtype=jnp.float64)
+
+    def J(a):
+        a = jnp.asarray(a, dtype=jnp.float64)
+        xf, status = final_state(problem, control, a, simulator)
+        tf = control.tf(a)
+        E = problem.terminal(tf, xf, problem.args)
+        value = weights[0] * time_scale * tf + jnp.sum(weights[1:] * E**2)
+        ok = (status == Status.SUCCESS) & jnp.isfinite(value)
+        return jnp.where(ok, value, jnp.inf)
+
+    return jax.jit(J)
+
+
+def box(control: AbstractControl, target: str = "mars", *, h_max=None, tf_max=None, c_lower=None, c_upper=None):
+    """Lower/upper parameter bounds for the metaheuristics over a `SaturatedSpline`.
+
+    Durations h_k in [0, h_max], by default h_max = 2 tf_max / P with tf_max = `TF_BOX[target]`
+    (about 2x the unrestricted minimum time tf*): a segment may last up to 4x its share
+    tf* / P of the optimal transfer (the optimal durations are unequal: the optimal Mars pitch
+    rises steeply early on, then varies slowly). With `free_durations=False` the one time
+    entry tf is in [0, tf_max]. Coefficients c_i in the control bounds [-pi/2, pi/2] by
+    default: values beyond them are saturated anyway, so for degree 0/1 the box loses no
+    control; for degree 2/3 it excludes only curves that come back from beyond the bounds.
+
+    **Returns:** `(lower, upper)`, float64 arrays of shape `(control.num_params,)`.
+    """
+    if not isinstance(control, SaturatedSpline):
+        raise ValueError(f"`control` must be a SaturatedSpline (the seed's control); got {type(control).__name__}.")
+    if tf_max is None:
+        if not isinstance(target, str) or target.lower() not in TF_BOX:
+            raise ValueError(f"`target` must be one of {sorted(TF_BOX)}; got {target!r}.")
+        tf_max = TF_BOX[target.lower()]
+    tf_max = float(tf_max)
+    P = control.segments
+    if h_max is None:
+        h_max = 2.0 * tf_max / P
+    h_max = float(h_max)
+    if not (math.isfinite(tf_max) and tf_max > 0 and math.isfinite(h_max) and h_max > 0):
+        raise ValueError(f"`tf_max` and `h_max` must be finite and > 0; got tf_max={tf_max!r}, h_max={h_max!r}.")
+    q = control.num_controls
+    lo_c = np.broadcast_to(np.asarray(control.lower if c_lower is None else c_lower, dtype=np.float64), (q,))
+    hi_c = np.broadcast_to(np.asarray(control.upper if c_upper is None else c_upper, dtype=np.float64), (q,))
+    if np.any(~(lo_c < hi_c)):
+        raise ValueError(f"`c_lower` must be < `c_upper`; got {lo_c}, {hi_c}.")
+    if control.free_durations:
+        t_lo, t_hi = np.zeros(P), np.full(P, h_max)
+    else:
+        t_lo, t_hi = np.zeros(1), np.array([tf_max])
+    lower = np.concatenate([t_lo, np.repeat(lo_c, P + 1)])
+    upper = np.concatenate([t_hi, np.repeat(hi_c, P + 1)])
+    return jnp.asarray(lower), jnp.asarray(upper)
+
+
+# ---------------------------------------------------------------------- diagnostics
+
+
+@eqx.filter_jit
+def _terminal_errors(problem, control, a, simulator):
+    xf, status = final_state(problem, control, a, simulator)
+    return problem.terminal(control.tf(a), xf, problem.args), status
+
+
+def _check_params(problem, control, a):
+    """Like the library's input checks, but a point a search may return (tf = 0, zero-length
+    segments) is accepted: shape, finiteness and non-decreasing knots only."""
+    check_problem_and_control(problem, control)
+    if isinstance(a, jax.core.Tracer):
+        if a.shape != (control.num_params,):
+            raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
+        return a.astype(jnp.float64)
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.shape != (control.num_params,):
+        raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got shape {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`a` must be finite; got non-finite entries at {np.flatnonzero(~np.isfinite(arr)).tolist()}.")
+    knots = np.asarray(control.knots(jnp.asarray(arr)))
+    if np.any(np.diff(knots) < 0) or knots[0] < 0:
+        raise ValueError(f"`a`: the knots (segment boundaries) must be >= 0 and non-decreasing; got {knots}.")
+    return jnp.asarray(arr)
+
+
+def terminal_miss(problem: Problem, control: AbstractControl, a, *, simulator: AbstractSimulator = RK4()):
+    """The seed's residual (|r(tf) - r_f|, |u(tf) - u_f|, |v(tf) - v_f|), shape `(3,)`
+    (NaN where the simulation failed). Accepts any point of a search box, tf = 0 included."""
+    a = _check_params(problem, control, a)
+    check_simulator(simulator)
+    E, status = _terminal_errors(problem, control, a, simulator)
+    return jnp.where(status == Status.SUCCESS, jnp.abs(E), jnp.nan)
+
+
+def feathered_fraction(control: AbstractControl, a, *, tol_deg: float = 5.0, samples: int = 4000):
+    """Fraction of the transfer time [0, tf] with |alpha| >= 90 deg - `tol_deg`: the sail
+    nearly edge-on, its thrust a0 cos^2(alpha) / r^2 below a0 sin^2(tol) / r^2 (0.8 % of
+    a0 for 5 deg). Angles outside
+    [-90, 90] deg are first reduced modulo 180 deg (the same flat sail, see `dynamics`).
+
+    Measured on `samples` midpoints of equal time intervals (resolution 1 / samples); 0 when
+    tf = 0. Pure (jit/vmap-able over `a`).
+    """
+    if not (isinstance(samples, int) and samples >= 1):
+        raise ValueError(f"`samples` must be an int >= 1; got {samples!r}.")
+    return _feathered_fraction(control, jnp.asarray(a, dtype=jnp.float64), jnp.asarray(tol_deg, dtype=jnp.float64), samples)
+
+
+@eqx.filter_jit
+def _feathered_fraction(control, a, tol_deg, samples):
+    tf = control.tf(a)
+    t = tf * (jnp.arange(samples, dtype=jnp.float64) + 0.5) / samples
+    alpha = control(a, t)[..., 0]
+    folded = jnp.abs(jnp.remainder(alpha + 0.5 * jnp.pi, jnp.pi) - 0.5 * jnp.pi)  # in [0, pi/2]
+    # +-90 deg fold to 90 deg up to round-off; the 1e-9 keeps them on the edge-on side.
+    frac = jnp.mean(folded >= 0.5 * jnp.pi - jnp.deg2rad(tol_deg) - 1e-9)
+    return jnp.where(tf > 0, frac, 0.0)  # no transfer time, nothing feathered
+
+
+def diagnose(
+    problem: Problem,
+    control: AbstractControl,
+    a,
+    *,
+    simulator: AbstractSimulator = RK4(),
+    miss_tol: float = 1e-6,
+    tol_deg: float = 5.0,
+    feathered_max: float = 0.02,
+    tf_floor: float | None = None,
+) -> dict:
+    """Flags for a claimed optimum: a dict with `tf`, `tf_days`, `miss` (per constraint),
+    `max_miss`, `feathered_fraction` and `flags`, a list of strings, empty when nothing is
+    suspicious:
+
+    - `"misses target"`: max miss > `miss_tol` (not a transfer; e.g. weak penalty weights);
+    - `"feathered arcs"`: more than `feathered_max` of the time edge-on (a spurious
+      stationary point of the pitch-angle formulation);
+    - `"below unrestricted optimum"`: tf < `tf_floor` (if given), which no restricted
+      control can achieve.
+    """
+    a = _check_params(problem, control, a)
+    miss = np.asarray(terminal_miss(problem, control, a, simulator=simulator))
+    tf = float(control.tf(a))
+    frac = float(feathered_fraction(control, a, tol_deg=tol_deg))
+    flags = []
+    if not np.all(np.isfinite(miss)) or float(np.max(miss)) > miss_tol:
+        flags.append("misses target")
+    if frac > feathered_max:
+        flags.append("feathered arcs")
+    if tf_floor is not None and tf < tf_floor:
+        flags.append("below unrestricted optimum")
+    return {
+        "tf": tf,
+        "tf_days": tf * DAYS_PER_UNIT,
+        "miss": miss,
+        "max_miss": float(np.max(miss)),
+        "feathered_fraction": frac,
+        "flags": flags,
+    }
+
+
+# ---------------------------------------------------------------------- indirect method
+
+
+def optimal_pitch(lam_u, lam_v):
+    """The pitch minimizing lam_u cos^3(alpha) + lam_v cos^2(alpha) sin(alpha) over
+    [-pi/2, pi/2] (Pontryagin's minimum principle for this sail; NumPy scalars).
+
+    Stationary points (besides the edge-on +-pi/2) solve 2 lam_v t^2 + 3 lam_u t - lam_v = 0,
+    t = tan(alpha); the candidates are compared directly.
+    """
+    a, b, c = 2.0 * lam_v, 3.0 * lam_u, -lam_v
+    disc = math.sqrt(b * b - 4.0 * a * c)  # = sqrt(9 lam_u^2 + 8 lam_v^2) >= 0
+    q = -0.5 * (b + math.copysign(disc, b))  # stable quadratic formula
+    cands = [0.5 * math.pi, -0.5 * math.pi]
+    if a != 0.0:
+        cands.append(math.atan(q / a))
+    if q != 0.0:
+        cands.append(math.atan(c / q))
+    vals = [lam_u * math.cos(x) ** 3 + lam_v * math.cos(x) ** 2 * math.sin(x) for x in cands]
+    return cands[int(np.argmin(vals))]
+
+
+def _state_costate_rhs(a0, mu):
+    def rhs(t, y):
+        r, _, u, v, lr, lu, lv = y
+        al = optimal_pitch(lu, lv)
+        c, s = math.cos(al), math.sin(al)
+        thrust_r, thrust_t = a0 * c**3, a0 * c * c * s
+        return [
+            u,
+            v / r,
+            v * v / r - mu / r**2 + thrust_r / r**2,
+            -u * v / r + thrust_t / r**2,
+            # lambda' = -dH/dx (lambda_theta = 0: theta is free and absent from f)
+            -(lu * (-v * v / r**2 + 2.0 * mu / r**3 - 2.0 * thrust_r / r**3) + lv * (u * v / r**2 - 2.0 * thrust_t / r**3)),
+            -(lr - lv * v / r),
+            -(2.0 * lu * v / r - lv * u / r),
+        ]
+
+    return rhs
+
+
+def _hamiltonian(y, a0, mu):
+    r, _, u, v, lr, lu, lv = y
+    al = optimal_pitch(lu, lv)
+    c, s = math.cos(al), math.sin(al)
+    return 1.0 + lr * u + lu * (v * v / r - mu / r**2 + a0 * c**3 / r**2) + lv * (-u * v / r + a0 * c * c * s / r**2)
+
+
+@dataclasses.dataclass(frozen=True)
+class IndirectResult:
+    """Outcome of `solve_indirect`: `tf`, `tf_days`, the initial costates
+    `(lambda_r, lambda_u, lambda_v)` (lambda_theta = 0), the shooting `residual`
+    (r - r_f, u, v - v_f, H(0)), `success` (max |residual| <= 1e-9), the dense solution
+    (`t`, `x` of shape (N, 4), `alpha`), the number of `starts` tried and `wall_time` [s]."""
+
+    tf: float
+    tf_days: float
+    costates: np.ndarray
+    residual: np.ndarray
+    success: bool
+    t: np.ndarray
+    x: np.ndarray
+    alpha: np.ndarray
+    starts: int
+    wall_time: float
+
+
+def solve_indirect(
+    target: str = "mars",
+    a0: float = KELLEY_A0,
+    *,
+    r_f: float | None = None,
+    mu: float = 1.0,
+    tf_guess: float | None = None,
+    pitch_guesses_deg=None,
+    rtol: float = 1e-12,
+    dense_points: int = 401,
+) -> IndirectResult:
+    """The unrestricted minimum-time transfer by Pontryagin's principle and single shooting,
+    independent of jaxtraj's simulation and derivatives (NumPy, `scipy.integrate.solve_ivp`
+    DOP853 and `scipy.optimize.root`).
+
+    H = 1 + lambda . f, lambda_theta = 0, alpha = `optimal_pitch(lambda_u, lambda_v)`.
+    Unknowns (lambda_r(0), lambda_u(0), lambda_v(0), tf); equations r(tf) = r_f, u(tf) = 0,
+    v(tf) = v_f and H(0) = 0 (free tf; H is constant along the extremal). Starting costates
+    come from a guessed initial pitch (the costate direction that makes it optimal, scaled so
+    that H(0) = 0) and lambda_r(0) = 0; the starts are tried in turn until one converges.
+
+    **Arguments:** `target`, `a0`, `r_f`, `mu` as in `problem`; `tf_guess` (default
+    `TF_BOX[target] / 2`; 7 or 4 with `r_f` given, for outward/inward transfers);
+    `pitch_guesses_deg` (default +-35, +-20, +-50 degrees, sign by outward/inward transfer);
+    `rtol` of the integration (atol = rtol); `dense_points`, the number of equally spaced
+    times of the returned `t`, `x`, `alpha`.
+
+    **Returns:** an `IndirectResult`; check `success` (the best start is returned either way).
+    """
+    start = time.perf_counter()
+    radius = _target_radius(target, r_f)
+    a0, mu = float(a0), float(mu)
+    if not a0 > 0:
+        raise ValueError(f"`a0` must be > 0 for a transfer; got {a0!r}.")
+    v_f = math.sqrt(mu / radius)
+    if tf_guess is None:
+        tf_guess = TF_BOX[target.lower()] / 2.0 if r_f is None else (7.0 if radius > 1.0 else 4.0)
+    sign = 1.0 if radius > 1.0 else -1.0
+    if pitch_guesses_deg is None:
+        pitch_guesses_deg = [sign * d for d in (35.0, 20.0, 50.0)]
+    pitch_guesses_deg = [float(d) for d in pitch_guesses_deg]
+    if not pitch_guesses_deg or not all(0.0 < abs(d) < 90.0 for d in pitch_guesses_deg):
+        raise ValueError(f"`pitch_guesses_deg` must be non-empty, each in (-90, 0) or (0, 90); got {pitch_guesses_deg}.")
+    if not (isinstance(dense_points, int) and dense_points >= 2):
+        raise ValueError(f"`dense_points` must be an int >= 2; got {dense_points!r}.")
+    rhs = _state_costate_rhs(a0, mu)
+
+    def integrate(z, dense=False):
+        y0 = [1.0, 0.0, 0.0, math.sqrt(mu), z[0], z[1], z[2]]
+        return scipy.integrate.solve_ivp(
+            rhs, (0.0, z[3]), y0, method="DOP853", rtol=rtol, atol=rtol, dense_output=dense
+        )
+
+    def residual(z):
+        if not z[3] > 0:
+            return np.full(4, 1e3)
+        sol = integrate(z)
+        if not sol.success:
+            return np.full(4, 1e3)
+        yf = sol.y[:, -1]
+        y0 = [1.0, 0.0, 0.0, math.sqrt(mu), z[0], z[1], z[2]]
+        return np.array([yf[0] - radius, yf[2], yf[3] - v_f, _hamiltonian(y0, a0, mu)])
+
+    best = None
+    tried = 0
+    for deg in pitch_guesses_deg:
+        tried += 1
+        al = math.radians(deg)
+        t = math.tan(al)
+        lv = -math.copysign(1.0, t)  # lambda_v < 0 pushes prograde, > 0 retrograde
+        lu = lv * (1.0 - 2.0 * t * t) / (3.0 * t)  # alpha stationary: 2 lv t^2 + 3 lu t - lv = 0
+        g = lu * math.cos(al) ** 3 + lv * math.cos(al) ** 2 * math.sin(al)
+        scale = -1.0 / (a0 * g)  # H(0) = 1 + a0 g = 0
+        z0 = np.array([0.0, lu * scale, lv * scale, float(tf_guess)])
+        sol = scipy.optimize.root(residual, z0, method="hybr", options={"xtol": 1e-13})
+        res = residual(sol.x)
+        if best is None or np.max(np.abs(res)) < np.max(np.abs(best[1])):
+            best = (sol.x, res)
+        if np.max(np.abs(res)) <= 1e-9:
+            break
+    z, res = best
+    dense = integrate(z, dense=True)
+    t = np.linspace(0.0, z[3], dense_points)
+    y = dense.sol(t)
+    alpha = np.array([optimal_pitch(lu, lv) for lu, lv in zip(y[5], y[6])])
+    return IndirectResult(
+        tf=float(z[3]),
+        tf_days=float(z[3]) * DAYS_PER_UNIT,
+        costates=np.asarray(z[:3], dtype=np.float64),
+        residual=res,
+        success=bool(np.max(np.abs(res)) <= 1e-9),
+        t=t,
+        x=y[:4].T.copy(),
+        alpha=alpha,
+        starts=tried,
+        wall_time=time.perf_counter() - start,
+    )
+
+
+#: Upper ends of the transfer-time boxes [normalized units] (`box`, `solve_indirect`'s
+#: default tf guess = half of it): about 2x the unrestricted minimum times for a0 = 0.17.
+TF_BOX = {"mars": 14.0, "venus": 7.0, "mercury": 9.0}
+
+
+__all__ = [
+    "CONSTRAINT_NAMES",
+    "DAYS_PER_UNIT",
+    "DEFAULT_WEIGHTS",
+    "KELLEY_A0",
+    "KELLEY_RF",
+    "STATE_NAMES",
+    "TARGET_RADII",
+    "TF_BOX",
+    "TF_KELLEY",
+    "TF_KELLEY_INDIRECT",
+    "IndirectResult",
+    "box",
+    "diagnose",
+    "dynamics",
+    "feathered_fraction",
+    "kelley_case",
+    "optimal_pitch",
+    "penalty_objective",
+    "problem",
+    "solve_indirect",
+    "spline_control",
+    "terminal",
+    "terminal_miss",
+]
