@@ -40,7 +40,9 @@ def _parser():
     g = s.add_mutually_exclusive_group()
     g.add_argument("--case", type=int, help="earth-mars: published thesis case 1..7 (default 4)")
     g.add_argument("--control", help=f"control spec: {_CONTROLS}")
-    s.add_argument("--solver", default="kalman", help="kalman (the thesis's Kalman-filter search)")
+    s.add_argument("--solver", default="kalman",
+                   help="kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
+                        "sqp-exact (KalmanSQP, exact Hessian)")
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
     s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
@@ -83,6 +85,9 @@ def parse_control(spec):
         return make(*nums)
     except ValueError as e:
         raise _UsageError(f"control spec {spec!r}: {e}") from None
+
+
+_SOLVERS = ("kalman", "sqp", "sqp-exact")
 
 
 def _setup(problem_name, args):
@@ -144,8 +149,8 @@ def _check_out(folder):
 def _solve(args):
     if args.problem not in _PROBLEMS:
         raise _UsageError(f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}")
-    if args.solver != "kalman":
-        raise _UsageError(f"unknown solver {args.solver!r}; available: kalman")
+    if args.solver not in _SOLVERS:
+        raise _UsageError(f"unknown solver {args.solver!r}; available: {', '.join(_SOLVERS)}")
     for name in ("starts", "steps", "max_steps"):
         _positive(f"--{name.replace('_', '-')}", getattr(args, name))
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -161,6 +166,10 @@ def _solve(args):
 
     _enable_compilation_cache()
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
+    if args.solver == "sqp":
+        solver = jt.KalmanSQP()
+    elif args.solver == "sqp-exact":
+        solver = jt.KalmanSQP(hessian="exact")
     sim = jt.RK4(args.steps)
     print(f"{args.problem} ({label}): {ctrl!r}, {ctrl.num_params} parameters, RK4({args.steps})", flush=True)
     starts = np.asarray(a0)[None, :].repeat(args.starts, axis=0)

@@ -255,6 +255,11 @@ class KalmanSearch(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
+        if problem.path is not None:
+            raise ValueError(
+                f"KalmanSearch does not handle path constraints (problem {problem.name!r} has "
+                f"{problem.path_names}); use jt.KalmanSQP()."
+            )
         ev = evaluate_restricted(problem, control, a0, simulator, self.method)
         f = jnp.float64
         nan = jnp.full(max_steps, jnp.nan, f)

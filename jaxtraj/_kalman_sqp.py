@@ -29,6 +29,13 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5] alpha.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`),
   exactly as in `KalmanSearch`.
+* Path constraints C(t, x, u) <= 0 (on the integration grid): the grid points the step
+  would leave violated become observations C_a d = -C after the terminal ones (the same
+  device as appendix C), the merit adds mu/2 |max(0, C)|^2, SUCCESS needs max C <= `ctol`
+  and the projected gradient is taken against [H; C_a] of the points with
+  C >= -`path_active`. Simplifications: the path multipliers are not fed to BFGS (its
+  Lagrangian has the terminal ones only) and their signs are not checked (an active set
+  that should be left is left only when the step's prediction moves off it).
 * One `step` = one candidate integration (with first-, or with `hessian="exact"`
   second-order sensitivities), branch-free, so a batch under `vmap` runs the same work for
   every start.
@@ -98,8 +105,35 @@ def _lagrangian_gradient(ev: Evaluation, lam):
     return ev.G_a + ev.H.T @ lam
 
 
+def _path_rows(ev: Evaluation):
+    """Path constraints flattened to rows: `(C (N q,), C_a (N q, np))`, or None."""
+    if ev.C is None:
+        return None
+    return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
+
+
 def _merit(ev: Evaluation, lam, mu):
-    return ev.G + lam @ ev.E + 0.5 * mu * (ev.E @ ev.E)
+    """G + lambda^T E + mu/2 (|E|^2 + |max(0, C)|^2)."""
+    penalty = ev.E @ ev.E
+    if ev.C is not None:
+        penalty = penalty + jnp.sum(jnp.maximum(ev.C, 0.0) ** 2)
+    return ev.G + lam @ ev.E + 0.5 * mu * penalty
+
+
+def _active_rows(ev: Evaluation, tol):
+    """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
+    that the projected gradient of a KKT point has to be orthogonal to."""
+    rows = _path_rows(ev)
+    if rows is None:
+        return ev.H
+    C, C_a = rows
+    return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
+
+
+def _max_path(ev: Evaluation):
+    if ev.C is None:
+        return jnp.asarray(-jnp.inf)
+    return jnp.max(ev.C)
 
 
 class _State(eqx.Module):
@@ -140,6 +174,8 @@ class KalmanSQP(AbstractSolver):
       after every full step it limited, reset to the accepted length after a shortened one.
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
       constraints are met to about this fraction of the innovation).
+    - `path_active`: path points with C >= -`path_active` count as active constraints in
+      the projected gradient (the KKT test).
     - `method`: sensitivity method, `"forward"` or `"unit"` (`"unit"` only with BFGS).
     """
 
@@ -151,6 +187,7 @@ class KalmanSQP(AbstractSolver):
     min_step: float = 1e-8
     min_curvature: float = 1e-8
     r_rel: float = 1e-12
+    path_active: float = 1e-6
     radius: float = 0.5
     method: str = "forward"
 
@@ -210,8 +247,25 @@ class KalmanSQP(AbstractSolver):
         # diagonal h P h^T is not small (measured 8e-7 = 1.5 |E| on case 7 near its optimum,
         # cond B 2e7); one pass brings it to 1e-13.
         d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
+        rows, m = _path_rows(ev), ev.E.shape[0]
+        A = ev.H
+        if rows is not None:
+            # Path inequalities C + C_a d <= 0, the appendix-C way: the points this step
+            # would leave violated become observations C_a d = -C (the boundary), filtered
+            # after the terminal ones; two rounds (points pushed out by the first round's
+            # correction join in the second), each followed by a refinement pass.
+            C, C_a = rows
+            r_c = self.r_rel * jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) + 1e-300
+            d_eq, active = d, jnp.zeros(C.shape, bool)
+            for _ in range(2):
+                active = active | (C + C_a @ d > 0)
+                d, P2, _ = sequential_update(d_eq, P1, C_a, -C, r_c, active=active)
+                d, P2, _ = sequential_update(d, P1, C_a, -C, r_c, active=active)
+            P1 = P2
+            A = jnp.concatenate([ev.H, jnp.where(active[:, None], C_a, 0.0)])
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t)
-        lam_qp = jnp.linalg.lstsq(ev.H.T, -(ev.G_a + B @ d))[0]
+        # multipliers of [E; active C] from stationarity; those of E drive the merit and BFGS
+        lam_qp = jnp.linalg.lstsq(A.T, -(ev.G_a + B @ d))[0][:m]
         return d, lam_qp
 
     def _line_search_start(self, ev, lam, mu, B, d, lam_qp):
@@ -220,6 +274,9 @@ class KalmanSQP(AbstractSolver):
         Hd = ev.H @ d
         c0 = ev.G_a @ d + lam @ Hd + ev.E @ dlam  # slope = c0 + mu c1
         c1 = ev.E @ Hd
+        rows = _path_rows(ev)
+        if rows is not None:
+            c1 = c1 + jnp.maximum(rows[0], 0.0) @ (rows[1] @ d)
         dBd = d @ B @ d
         mu_needed = (c0 + 0.5 * dBd) / jnp.where(c1 < 0, -c1, 1.0)
         mu = jnp.where((c1 < 0) & (mu < mu_needed), 2.0 * mu_needed, mu)
@@ -318,8 +375,9 @@ class KalmanSQP(AbstractSolver):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E))
-        pg = _projected_gradient(new_ev.G_a, new_ev.H)
-        converged = (maxE <= self.ctol) & (pg <= self.gtol * (1.0 + jnp.abs(new_ev.G)))
+        pg = _projected_gradient(new_ev.G_a, _active_rows(new_ev, self.path_active))
+        feasible = (maxE <= self.ctol) & (_max_path(new_ev) <= self.ctol)
+        converged = feasible & (pg <= self.gtol * (1.0 + jnp.abs(new_ev.G)))
         negligible = jnp.linalg.norm(alpha * d) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
         stalled = ~converged & ((~accept & (alpha_next < self.min_step)) | ~descent | (accept & negligible))
         done = converged | stalled
@@ -376,7 +434,9 @@ class KalmanSQP(AbstractSolver):
             objective=ev.G,
             constraints=ev.E,
             max_constraint_error=jnp.max(jnp.abs(ev.E)),
-            projected_gradient=_projected_gradient(ev.G_a, ev.H),
+            projected_gradient=_projected_gradient(ev.G_a, _active_rows(ev, self.path_active)),
+            max_path_constraint=None if ev.C is None else _max_path(ev),
+            max_path_time=None if ev.C is None else ev.path_t[jnp.argmax(jnp.max(ev.C, axis=1))],
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

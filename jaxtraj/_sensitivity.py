@@ -162,7 +162,9 @@ def sensitivities(
 
 class Evaluation(eqx.Module):
     """The restricted problem at one parameter vector (ALGORITHM.md sec. 1):
-    objective G and gradient G_a, constraints E = M(tf, x(tf)) and Jacobian H = dE/da."""
+    objective G and gradient G_a, constraints E = M(tf, x(tf)) and Jacobian H = dE/da, and
+    for problems with path constraints their values C (N, q) at the N points of the
+    integration grid (times `path_t`) with C_a = dC/da (N, q, np); None otherwise."""
 
     xf: jax.Array
     xf_a: jax.Array
@@ -172,11 +174,50 @@ class Evaluation(eqx.Module):
     E: jax.Array
     H: jax.Array
     status: Status
+    C: jax.Array | None = None
+    C_a: jax.Array | None = None
+    path_t: jax.Array | None = None
+
+
+def path_values(problem, control, a, simulator):
+    """`(xf, (t, C))`: the final state and the path constraints C(t, x, u) <= 0 at every point
+    of the integration grid, segment after segment (`Trajectory` order: a knot appears as
+    the end of one segment and the start of the next, with the control of each side)."""
+    field = rescaled_field(problem, control)
+    xf, xs, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True)
+    knots = control.knots(a)
+    grid = jnp.asarray(simulator.dense_grid())
+    K, S = knots.shape[0] - 1, grid.shape[0]
+    t = knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * grid[None, :]
+    ks = jnp.broadcast_to(jnp.arange(K)[:, None], (K, S)).reshape(-1)
+    taus = jnp.broadcast_to(grid[None, :], (K, S)).reshape(-1)
+    u = jax.vmap(lambda k, tau: control.segment_control(a, k, tau))(ks, taus)
+    C = jax.vmap(lambda ti, xi, ui: problem.path(ti, xi, ui, problem.args))(t.reshape(-1), xs.reshape(K * S, -1), u)
+    return xf, (t.reshape(-1), C, ok)
+
+
+def _path_jacobian(problem, control, a, simulator):
+    """Forward-mode Jacobian of the final state and of the path constraints together (one
+    integration with np tangents through the dense simulation)."""
+
+    def run(a):
+        xf, (t, C, ok) = path_values(problem, control, a, simulator)
+        return (xf, C), (xf, t, C, ok)
+
+    (xf_a, C_a), (xf, t, C, ok) = jax.jacfwd(run, has_aux=True)(a)
+    return xf, xf_a, t, C, C_a, simulation_status(ok, xf, xf_a, C, C_a)
 
 
 def evaluate_restricted(problem, control, a, simulator, method="forward") -> Evaluation:
     """Pure (jit/vmap-able) evaluation; used by every solver."""
-    xf, xf_a, status = _JACOBIANS[method](problem, control, a, simulator)
+    path = {}
+    if problem.path is None:
+        xf, xf_a, status = _JACOBIANS[method](problem, control, a, simulator)
+    else:
+        if method != "forward":
+            raise ValueError(f"problems with path constraints need method='forward'; got {method!r}.")
+        xf, xf_a, t, C, C_a, status = _path_jacobian(problem, control, a, simulator)
+        path = {"C": C, "C_a": C_a, "path_t": t}
     tf = control.tf(a)
     tf_a = jax.grad(control.tf)(a)
 
@@ -188,7 +229,7 @@ def evaluate_restricted(problem, control, a, simulator, method="forward") -> Eva
     G, G_a = chain(problem.objective)
     E, H = chain(problem.terminal)
     status = Status.where(status == Status.SUCCESS, simulation_status(True, G, G_a, E, H), status)
-    return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status)
+    return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status, **path)
 
 
 _evaluate = eqx.filter_jit(evaluate_restricted)

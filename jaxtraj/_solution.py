@@ -32,6 +32,9 @@ class Solution(eqx.Module):
     - `projected_gradient`: |V G_a| with V the projection on the constraints' tangent space
       (the KKT stationarity residual of the restricted problem).
     - `history`: a `History`; `steps`: how many of its entries are filled.
+    - `max_path_constraint`, `max_path_time`: for problems with path constraints C <= 0
+      (solvers that handle them), the largest C on the integration grid (<= 0: satisfied;
+      minus the worst margin) and where it occurs; None otherwise.
     """
 
     params: jax.Array
@@ -45,3 +48,5 @@ class Solution(eqx.Module):
     steps: jax.Array
     status: Status
     history: History
+    max_path_constraint: jax.Array | None = None
+    max_path_time: jax.Array | None = None

@@ -78,6 +78,9 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None):
         "steps": n,
         "params": np.asarray(sol.params).tolist(),
     }
+    if sol.max_path_constraint is not None:
+        summary["max_path_constraint"] = float(sol.max_path_constraint)
+        summary["max_path_time"] = float(sol.max_path_time)
     text = json.dumps(summary, indent=2).encode()
     atomic_write(os.path.join(folder, "summary.json"), lambda f: f.write(text))
     return summary
@@ -103,6 +106,8 @@ def load(folder):
         steps=jnp.asarray(summary["steps"]),
         status=status,
         history=history,
+        max_path_constraint=None if "max_path_constraint" not in summary else jnp.asarray(summary["max_path_constraint"]),
+        max_path_time=None if "max_path_time" not in summary else jnp.asarray(summary["max_path_time"]),
     )
     traj = Trajectory(
         t=jnp.asarray(arrays["t"]),

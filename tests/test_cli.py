@@ -97,3 +97,13 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and summary["inputs"]["starts"] == 3
     assert abs(summary["objective"] - 6.0) < 1e-6  # analytic optimum of the min-energy problem
+
+
+def test_solve_with_kalman_sqp(tmp_path):
+    out = tmp_path / "sqp"
+    r = run("solve", "min-energy", "--control", "linear:3", "--solver", "sqp", "--steps", "4", "--no-plot",
+            "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and "KalmanSQP" in summary["inputs"]["solver"]
+    assert abs(summary["objective"] - 6.0) < 1e-10 and summary["max_constraint_error"] < 1e-10

@@ -209,3 +209,25 @@ def test_batch_and_bad_start():
 def test_bad_settings(kwargs):
     with pytest.raises(ValueError, match="KalmanSQP"):
         jt.KalmanSQP(**kwargs)
+
+
+@pytest.mark.parametrize("segments, hessian", [(4, "bfgs"), (4, "exact"), (8, "bfgs")])
+def test_path_constraint_analytic_optimum(segments, hessian):
+    """Speed limit x2 <= 1.2 on the min-energy double integrator: energy 8 V^3 / (9 (V - 1))
+    = 7.68, contained exactly in PiecewiseLinear(4) and (8); the constraint is active on the
+    whole coast arc t in [1/4, 3/4]."""
+    prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
+    ctrl = jt.controls.PiecewiseLinear(segments)
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSQP(hessian=hessian),
+                   simulator=jt.RK4(segments), max_steps=300)
+    assert sol.status == jt.Status.SUCCESS
+    assert abs(float(sol.objective) - jt.problems.analytic.speed_limited_energy(1.2)) < 1e-8
+    assert float(sol.max_path_constraint) <= 1e-10
+    assert 0.25 - 1e-9 <= float(sol.max_path_time) <= 0.75 + 1e-9
+    nodes = np.linspace(0.0, 1.0, segments + 1)
+    u_star = np.where(nodes < 0.25, 9.6 * (1 - nodes / 0.25), 0.0) - np.where(nodes > 0.75, 9.6 * (nodes - 0.75) / 0.25, 0.0)
+    np.testing.assert_allclose(sol.params[:-1], u_star, atol=1e-5)
+    # without the limit the optimum is the unconstrained one (6), which violates it
+    free = jt.solve(jt.problems.analytic.min_energy_double_integrator(1.0), ctrl, ctrl.initial_guess(1.2, 0.0, 0.0),
+                    jt.KalmanSQP(), simulator=jt.RK4(segments))
+    assert abs(float(free.objective) - 6.0) < 1e-9

@@ -65,3 +65,41 @@ def min_energy_double_integrator(tf=1.0) -> Problem:
         control_names=("acceleration",),
         name="min-energy-double-integrator",
     )
+
+
+def _speed_limit(t, x, u, args):
+    del t, u
+    return jnp.stack([x[1] - args["vmax"]])
+
+
+def speed_limited_double_integrator(vmax=1.2, tf=1.0) -> Problem:
+    """`min_energy_double_integrator` with the path constraint x2 <= vmax (C = x2 - vmax).
+
+    For tf = 1 and 1 < vmax < 1.5 (1.5 is the unconstrained peak speed) the optimum
+    accelerates with u = a (1 - t/t1) to reach vmax at t1 = 3 (vmax - 1) / (2 vmax), coasts
+    on the constraint and brakes symmetrically; energy `speed_limited_energy(vmax)` =
+    8 vmax^3 / (9 (vmax - 1)) (6 at vmax = 1.5). For vmax = 1.2, t1 = 1/4: u is piecewise
+    linear with nodes at 0, 1/4, 3/4, 1, so `PiecewiseLinear(4)` contains the optimum
+    exactly (node values 9.6, 0, 0, 0, -9.6).
+    """
+    base = min_energy_double_integrator(tf)
+    return Problem(
+        base.dynamics,
+        x0=base.x0,
+        terminal=base.terminal,
+        constraint_names=base.constraint_names,
+        objective=base.objective,
+        args={**base.args, "vmax": jnp.asarray(float(vmax), dtype=jnp.float64)},
+        state_names=base.state_names,
+        control_names=base.control_names,
+        path=_speed_limit,
+        path_names=("speed",),
+        name="speed-limited-double-integrator",
+    )
+
+
+def speed_limited_energy(vmax):
+    """Optimal energy of `speed_limited_double_integrator(vmax, tf=1)`, 1 < vmax <= 1.5."""
+    if not 1.0 < vmax <= 1.5:
+        raise ValueError(f"`vmax` must be in (1, 1.5]; got {vmax}.")
+    return 8.0 * vmax**3 / (9.0 * (vmax - 1.0))
