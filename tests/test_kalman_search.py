@@ -134,3 +134,10 @@ def test_nonfinite_candidate_is_a_rejected_step_not_a_nan_result():
     assert np.all(np.isfinite(np.asarray(new.ev.E))) and np.all(np.isfinite(np.asarray(new.ev.H)))
     np.testing.assert_allclose(new.da_pending, 0.25 * np.array([0.0, 4.8]))  # shrunk, retried next
     assert bool(new.has_pending) and float(new.rho) < float(state.rho)
+
+
+def test_path_constraints_are_refused_with_a_pointer_to_kalman_sqp():
+    prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
+    ctrl = jt.controls.PiecewiseLinear(4)
+    with pytest.raises(ValueError, match="KalmanSQP"):
+        jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSearch(), simulator=jt.RK4(4))
