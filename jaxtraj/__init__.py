@@ -50,7 +50,13 @@ from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
 from ._kalman_sqp import KalmanSQP as KalmanSQP  # noqa: E402
 from .metaheuristics import Dragonfly as Dragonfly, GreyWolf as GreyWolf, Whale as Whale  # noqa: E402
 from ._solution import History as History, Solution as Solution  # noqa: E402
-from ._solve import AbstractSolver as AbstractSolver, solve as solve, solve_batch as solve_batch  # noqa: E402
+from ._solve import AbstractSolver as AbstractSolver, solve as solve  # noqa: E402
+from ._batch import (  # noqa: E402
+    MultistartResult as MultistartResult,
+    multistart as multistart,
+    random_starts as random_starts,
+    solve_batch as solve_batch,
+)
 from ._status import Status as Status, status_name as status_name  # noqa: E402
 
 __version__ = "0.1.0"

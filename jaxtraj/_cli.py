@@ -45,6 +45,8 @@ def _parser():
                         "sqp-exact (KalmanSQP, exact Hessian)")
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
+    s.add_argument("--resume", action="store_true",
+                   help="with --starts > 1 and the --out of an interrupted run: skip the chunks already solved")
     s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
     s.add_argument("--max-steps", type=int, default=5000, help="cap on candidate integrations")
     s.add_argument("--out", help="result folder (default results/<problem>-<timestamp>)")
@@ -162,7 +164,7 @@ def _solve(args):
 
     import jaxtraj as jt
     from jaxtraj import io
-    from jaxtraj.plot import write_figures
+    from jaxtraj.plot import batch_figure, write_figures
 
     _enable_compilation_cache()
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
@@ -172,48 +174,33 @@ def _solve(args):
         solver = jt.KalmanSQP(hessian="exact")
     sim = jt.RK4(args.steps)
     print(f"{args.problem} ({label}): {ctrl!r}, {ctrl.num_params} parameters, RK4({args.steps})", flush=True)
-    starts = np.asarray(a0)[None, :].repeat(args.starts, axis=0)
-    if args.starts > 1:
-        rng = np.random.default_rng(args.seed)
-        noise = 0.05 * rng.standard_normal(starts.shape)
-        noise[:, list(ctrl.time_indices)] *= 0.02  # small relative moves keep times ordered
-        starts[1:] += noise[1:]
     print(f"compiling and solving {args.starts} start(s) ...", flush=True)
     t0 = time.perf_counter()
+    sols = None
     if args.starts == 1:
-        sol = jax.block_until_ready(
-            jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps, progress=100)
-        )
-        best, ok_count = sol, int(sol.status == jt.Status.SUCCESS)
+        start = np.asarray(a0)
     else:
-        # Up to 10 equal chunks (the last one padded), one compiled batch solve each: progress
-        # per completed chunk without recompiling.
-        size = -(-args.starts // 10)
-        padded = np.concatenate([starts, starts[-1:].repeat(-args.starts % size, axis=0)])
-        parts = []
-        for k in range(0, len(padded), size):
-            parts.append(jax.block_until_ready(
-                jt.solve_batch(prob, ctrl, padded[k:k + size], solver, simulator=sim, max_steps=args.max_steps)))
-            done = min(k + size, args.starts)
-            n_ok = sum(int(np.sum(np.asarray(p.status == jt.Status.SUCCESS))) for p in parts)
-            print(f"  completed {done} / {args.starts} starts ({n_ok} successful so far, "
-                  f"{time.perf_counter() - t0:.1f} s)", flush=True)
-        sols = jax.tree.map(lambda *xs: np.concatenate(xs)[: args.starts], *parts)
+        # random starts around a0 (a0 itself first), one compiled batch solve in up to 10
+        # chunks (a progress line each, on stderr), each chunk written to <out>/batch so that
+        # --resume can pick an interrupted run up
+        starts = np.array(jt.random_starts(prob, ctrl, jax.random.key(args.seed), args.starts, around=a0, spread=0.05))
+        starts[0] = np.asarray(a0)
+        sols = jt.solve_batch(prob, ctrl, starts, solver, simulator=sim, max_steps=args.max_steps,
+                              chunk_size=-(-args.starts // 10), out=os.path.join(out, "batch"), resume=args.resume,
+                              history=False)
         ok = np.asarray(sols.status == jt.Status.SUCCESS)
-        obj = np.where(ok, np.asarray(sols.objective), np.inf)
-        i = int(np.argmin(obj)) if ok.any() else 0
-        best = jax.tree.map(lambda x: x[i], sols)
-        ok_count = int(ok.sum())
+        start = starts[int(np.argmin(np.where(ok, np.asarray(sols.objective), np.inf))) if ok.any() else 0]
+        print(f"  {int(ok.sum())} / {args.starts} starts successful ({time.perf_counter() - t0:.1f} s); "
+              "the best one again alone, for its history:", flush=True)
+    best = jax.block_until_ready(jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps,
+                                          progress=100))
+    ok_count = int(best.status == jt.Status.SUCCESS) if sols is None else int(ok.sum())
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if args.starts == 1:  # the same compiled solve again, its progress lines silenced
-        with contextlib.redirect_stdout(io_module.StringIO()):
-            jax.block_until_ready(
-                jt.solve(prob, ctrl, starts[0], solver, simulator=sim, max_steps=args.max_steps, progress=100)
-            )
-        second = time.perf_counter() - t0
-    else:
-        second = float("nan")
+    with contextlib.redirect_stdout(io_module.StringIO()):  # the same compiled solve again, silenced
+        jax.block_until_ready(jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps,
+                                       progress=100))
+    second = time.perf_counter() - t0
     traj = jt.simulate(prob, ctrl, best.params, simulator=sim)
 
     rows = [("status", jt.status_name(best.status)), ("successful starts", f"{ok_count} / {args.starts}"),
@@ -222,13 +209,13 @@ def _solve(args):
     rows += [(f"  {n}", f"{e:+.2e}") for n, e in zip(prob.constraint_names, np.asarray(best.constraints))]
     rows += [("projected gradient", f"{float(best.projected_gradient):.2e}"),
              ("iterations / integrations", f"{int(best.iterations)} / {int(best.integrations)}"),
-             ("time (warm)", f"{second:.3f} s" if second == second else "n/a (batch)"),
-             ("time (first call, incl. compile)", f"{first:.2f} s")]
+             ("time (warm, best start)", f"{second:.3f} s"),
+             ("time (first call" + (", all starts" if sols is not None else "") + ", incl. compile)", f"{first:.2f} s")]
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"  {k:<{width}}  {v}")
     inputs = {"problem": args.problem, "control": repr(ctrl), "label": label, "a0": np.asarray(a0),
-              "starts": args.starts, "seed": args.seed, "rk4_steps": args.steps, "max_steps": args.max_steps,
+              "starts": args.starts, "seed": args.seed, "resume": args.resume, "rk4_steps": args.steps, "max_steps": args.max_steps,
               "solver": repr(solver), "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__,
                                                     "python": sys.version.split()[0]}}
     io.save(out, prob, best, traj, inputs=inputs)
@@ -236,6 +223,12 @@ def _solve(args):
     if not args.no_plot:
         written += write_figures(out, prob, ctrl, best, traj, r_target=r_target,
                                  title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}")
+        if sols is not None:
+            ok_idx = np.flatnonzero(ok)[:50]
+            trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
+            batch_figure(os.path.join(out, "starts.png"), prob, sols.objective, ok, trajs,
+                         title=f"{args.problem} ({label}): {args.starts} starts")
+            written.append("starts.png")
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1
 

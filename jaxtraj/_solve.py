@@ -115,18 +115,3 @@ def solve(
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
     return _run(solver, problem, control, a0, simulator, max_steps, progress)
-
-
-def solve_batch(problem, control, a0s, solver=None, *, simulator: AbstractSimulator = RK4(), max_steps: int = 5000):
-    """`jt.solve` vmapped over the leading axis of `a0s` (shape `(N, num_params)`).
-    Every field of the returned `Solution` gains a leading N axis; one start's failure does
-    not affect the others."""
-    solver = _check_solver(solver, max_steps)
-    a0s = jnp.asarray(a0s, dtype=jnp.float64)
-    if a0s.ndim != 2 or a0s.shape[1] != control.num_params:
-        raise ValueError(f"`a0s` must have shape (N, {control.num_params}); got {a0s.shape}.")
-    # No per-start value checks here: a bad start (NaN, times out of order) must come back
-    # as that start's failure status without stopping the others.
-    check_problem_and_control(problem, control)
-    check_simulator(simulator)
-    return jax.vmap(lambda a: _run(solver, problem, control, a, simulator, max_steps))(a0s)

@@ -132,3 +132,33 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
         plt.close(fig)
         names.append("orbit.png")
     return names
+
+
+def batch_figure(path, problem, objectives, success, trajectories, *, title=None):
+    """Multi-start overview: histogram of the final objectives of the successful starts, and
+    the control histories of (up to 50 of) them overlaid. `trajectories`: `jt.Trajectory`s."""
+    plt = _plt()
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    obj = np.asarray(objectives)[np.asarray(success)]
+    if obj.size:
+        ax1.hist(obj, bins=min(40, max(5, obj.size // 3)), color="C0", alpha=0.8)
+    ax1.set(xlabel="final objective", ylabel="starts",
+            title=f"{obj.size} / {np.asarray(success).size} starts successful")
+    ax1.grid(alpha=0.3)
+    best = np.min(obj) if obj.size else None
+    names = problem.control_names or tuple(f"u{j}" for j in range(problem.num_controls))
+    for i, traj in enumerate(trajectories):
+        u = np.asarray(traj.u)
+        for j in range(u.shape[1]):
+            ax2.plot(traj.t, u[:, j], color=f"C{j}", lw=0.8, alpha=0.35, label=names[j] if i == 0 else None)
+    ax2.set(xlabel="t", ylabel="u", title=f"controls of {len(trajectories)} successful starts"
+            + (f" (best objective {best:.6g})" if best is not None else ""))
+    ax2.grid(alpha=0.3)
+    if trajectories:
+        ax2.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -93,7 +93,13 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     r = run("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--seed", "2", "--steps", "4",
             "--no-plot", "--out", str(out), tmp_path=tmp_path)
     assert r.returncode == 0, r.stderr
-    assert "completed 3 / 3 starts" in r.stdout and "3 / 3" in r.stdout
+    assert "solve_batch: 3/3 starts" in r.stderr and "3 / 3 starts successful" in r.stdout
+    assert sorted(p.name for p in (out / "batch").iterdir()) == [
+        "chunk_00000.npz", "chunk_00001.npz", "chunk_00002.npz", "manifest.json"]
+    again = run("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--seed", "2", "--steps", "4",
+                "--no-plot", "--out", str(out), "--resume", tmp_path=tmp_path)
+    assert again.returncode == 0 and "3/3 chunk(s) already done" in again.stderr, again.stderr
+    assert abs(json.loads((out / "summary.json").read_text())["objective"] - 6.0) < 1e-6
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and summary["inputs"]["starts"] == 3
     assert abs(summary["objective"] - 6.0) < 1e-6  # analytic optimum of the min-energy problem

@@ -1,0 +1,209 @@
+"""Batched solves: `jt.solve_batch` against a Python loop over single jitted `jt.solve` calls
+(Earth-Mars case 4, RK4(100), KalmanSearch, random starts around the published one), the
+scaling with the number of host devices, where the time goes under vmap, and peak memory
+for N = 10,000 with chunking.
+
+Every throughput is measured in the same run as the loop it is compared with (ratios; the
+machine is shared). The loop is timed on the first min(N, 64) starts and extrapolated to N
+(the starts are i.i.d., so the per-start mean carries over); solve_batch is timed on all N.
+Compilation is excluded from both (warm-up calls: for solve_batch on N NaN starts, which have
+the same shapes and end at once).
+
+Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling]` (all four by
+default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the N = 10,000
+runs.
+"""
+
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxtraj as jt
+from jaxtraj._batch import random_starts, solve_batch
+from jaxtraj._sensitivity import evaluate_restricted
+
+PROB, CTRL, A0 = jt.problems.earth_mars.thesis_case(4)
+SOLVER = jt.KalmanSearch()
+SPREAD = 0.1
+LOOP_SUBSET = 64
+
+
+def starts(n, seed=0):
+    return np.asarray(random_starts(PROB, CTRL, jax.random.key(seed), n, A0, SPREAD))
+
+
+def loop_rate(a0s):
+    """Solves per second of a Python loop over jitted single solves (compiled beforehand)."""
+    jax.block_until_ready(jt.solve(PROB, CTRL, a0s[0], SOLVER).params)
+    t0 = time.perf_counter()
+    for a in a0s:
+        jax.block_until_ready(jt.solve(PROB, CTRL, a, SOLVER).params)
+    return len(a0s) / (time.perf_counter() - t0)
+
+
+def batch_rate(a0s, **kw):
+    """Solves per second of solve_batch (compiled beforehand on NaN starts)."""
+    solve_batch(PROB, CTRL, np.full_like(a0s, np.nan), SOLVER, progress=False, **kw)
+    t0 = time.perf_counter()
+    sols = solve_batch(PROB, CTRL, a0s, SOLVER, progress=False, **kw)
+    return len(a0s) / (time.perf_counter() - t0), sols
+
+
+def throughput():
+    print("## solve_batch vs a Python loop of jitted single solves (1 device)")
+    print()
+    print(f"Loop timed on the first min(N, {LOOP_SUBSET}) starts and extrapolated. `lanes` = starts vmapped "
+          "together per device (default on CPU: 1, a compiled loop of single solves).")
+    print()
+    print("| N | loop [solves/s] | solve_batch default (lanes=1) [solves/s] | ratio | lanes=4 | ratio "
+          "| lanes=16 | ratio | success | mean / max steps |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for n in (1, 16, 256, 1024):
+        a0s = starts(n)
+        loop = loop_rate(a0s[:LOOP_SUBSET])
+        default, sols = batch_rate(a0s)
+        cells = [f"{default:.1f}", f"{default / loop:.2f}x"]
+        for lanes in (4, 16):
+            if lanes > n:
+                cells += ["-", "-"]
+                continue
+            rate, _ = batch_rate(a0s, lanes=lanes)
+            cells += [f"{rate:.1f}", f"{rate / loop:.2f}x"]
+        ok = np.asarray(sols.status == jt.Status.SUCCESS)
+        steps = np.asarray(sols.steps)
+        print(f"| {n} | {loop:.1f}{' (extrapolated)' if n > LOOP_SUBSET else ''} | " + " | ".join(cells)
+              + f" | {ok.mean():.0%} | {steps.mean():.0f} / {steps.max()} |", flush=True)
+    print()
+
+
+def where_time_goes():
+    print("## Where the time goes under vmap")
+    print()
+    sim = jt.RK4()
+    ev = jax.jit(lambda a: jax.vmap(lambda x: evaluate_restricted(PROB, CTRL, x, sim))(a))
+    a0s = starts(256)
+    print("Per-lane cost of one evaluation (simulation + forward Jacobian + G, E, H), vmapped over B starts:")
+    print()
+    print("| B | per lane [us] |")
+    print("|---:|---:|")
+    for b in (1, 4, 16, 64, 256):
+        a = jnp.asarray(a0s[:b])
+        jax.block_until_ready(ev(a))
+        best = min(_timed(lambda a=a: jax.block_until_ready(ev(a))) for _ in range(5))
+        print(f"| {b} | {best / b * 1e6:.0f} |", flush=True)
+    print()
+    steps = np.asarray(solve_batch(PROB, CTRL, a0s, SOLVER, progress=False, history=False).steps)
+    print("A vmapped group iterates as long as its slowest start: useful share of the lane-iterations "
+          "(sum of steps / (lanes x sum over groups of the max steps)) for these 256 starts:")
+    print()
+    print("| lanes | 1 | 4 | 16 | 64 | 256 |")
+    print("|---|---:|---:|---:|---:|---:|")
+    shares = [steps.sum() / (g * steps.reshape(-1, g).max(axis=1).sum()) for g in (1, 4, 16, 64, 256)]
+    print("| useful share | " + " | ".join(f"{s:.0%}" for s in shares) + " |")
+    print()
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+_SCALING = """
+import sys, time, jax, numpy as np
+sys.path.insert(0, sys.argv[1])
+from benchmarks.batch import batch_rate, starts, loop_rate
+a0s = starts(int(sys.argv[2]))
+loop = loop_rate(a0s[:32])
+for k in range(1, len(jax.devices()) + 1):
+    rate, _ = batch_rate(a0s, devices=jax.devices()[:k])
+    print(f"{k} {rate:.2f} {loop:.2f}", flush=True)
+"""
+
+
+def scaling(n=256, counts=(2,)):
+    print(f"## Scaling with host devices (N = {n}, lanes=1; one process per row group, "
+          "`XLA_FLAGS=--xla_force_host_platform_device_count=D`, first D devices used)")
+    print()
+    print("| host devices in process | devices used | solve_batch [solves/s] | loop in same process [solves/s] "
+          "| ratio to loop | speed-up over 1 device |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for d in counts:
+        env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={d}"}
+        proc = subprocess.run([sys.executable, "-c", _SCALING, root, str(n)], env=env, capture_output=True, text=True)
+        if proc.returncode:
+            print(proc.stderr[-2000:])
+            continue
+        rows = [line.split() for line in proc.stdout.strip().splitlines()]
+        one = float(rows[0][1])
+        for k, rate, loop in rows:
+            print(f"| {d} | {k} | {float(rate):.1f} | {float(loop):.1f} | {float(rate) / float(loop):.2f}x "
+                  f"| {float(rate) / one:.2f}x |", flush=True)
+    print()
+
+
+_MEMORY = """
+import resource, sys, time
+sys.path.insert(0, sys.argv[1])
+from benchmarks.batch import PROB, CTRL, SOLVER, starts
+from jaxtraj._batch import solve_batch
+import numpy as np
+n, chunk, history = int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
+a0s = starts(n)
+t0 = time.perf_counter()
+sols = solve_batch(PROB, CTRL, a0s, SOLVER, chunk_size=chunk, history=history, progress=False)
+wall = time.perf_counter() - t0
+ok = float(np.mean(np.asarray(sols.status == __import__("jaxtraj").Status.SUCCESS)))
+with open("/proc/self/status") as f:
+    hwm = [int(line.split()[1]) for line in f if line.startswith("VmHWM")][0] / 1024
+print(n, chunk, history, hwm, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, wall, ok)
+"""
+
+
+def memory(runs):
+    print("## Peak memory with chunking (fresh process per row; includes JAX, compilation and the result)")
+    print()
+    print("Peak RSS is the child's VmHWM (/proc/self/status). Its `ru_maxrss` is also shown: on Linux it "
+          "carries over the parent's peak through fork + exec, so it is only meaningful when the parent is small.")
+    print()
+    print("| N | chunk_size | history | peak RSS (VmHWM) [MiB] | ru_maxrss [MiB] | wall incl. compile [s] "
+          "| solves/s | success |")
+    print("|---:|---:|---|---:|---:|---:|---:|---:|")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for n, chunk, history in runs:
+        proc = subprocess.run([sys.executable, "-c", _MEMORY, root, str(n), str(chunk), "1" if history else "0"],
+                              capture_output=True, text=True)
+        if proc.returncode:
+            print(proc.stderr[-2000:])
+            continue
+        _, _, _, hwm, rss, wall, ok = proc.stdout.split()[-7:]
+        print(f"| {n} | {chunk} | {history} | {float(hwm):.0f} | {float(rss):.0f} | {float(wall):.1f} "
+              f"| {n / float(wall):.1f} | {float(ok):.1%} |", flush=True)
+    print()
+
+
+def main():
+    print(f"# solve_batch benchmark — {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
+          f"{len(jax.devices())} device(s), x64, case 4, RK4(100), KalmanSearch, spread {SPREAD}")
+    print()
+    t0 = time.perf_counter()
+    sections = [a for a in sys.argv[1:] if not a.startswith("--")] or ["memory", "throughput", "where", "scaling"]
+    for name in sections:  # memory first, while this (parent) process is still small
+        if name == "memory" and "--skip-memory" not in sys.argv:
+            memory([(1000, 1000, False), (10000, 1000, False), (1000, 1000, True), (4000, 1000, True)])
+        elif name != "memory":
+            {"throughput": throughput, "where": where_time_goes, "scaling": scaling}[name]()
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"(total {time.perf_counter() - t0:.0f} s; this process peaked at {rss:.0f} MiB)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,378 @@
+"""solve_batch and multistart: equal to single solves start by start, independent of the
+device count and of chunking, robust to bad starts, resumable after an interruption."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+from jaxtraj import _batch
+from jaxtraj._batch import MultistartResult, multistart, random_starts, solve_batch
+
+PROB, CTRL, A0 = jt.problems.earth_mars.thesis_case(4)
+SIM = jt.RK4(20)
+SOLVER = jt.KalmanSearch()
+MAX_STEPS = 150
+CHUNK = 4  # 7 starts -> chunks of 4 and 3 (+1 padding row): one compilation for both
+NAN, HOPELESS = 2, 5  # a start with a NaN; one that cannot converge in MAX_STEPS
+KW = dict(simulator=SIM, max_steps=MAX_STEPS, chunk_size=CHUNK)
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _starts():
+    a = np.array(random_starts(PROB, CTRL, jax.random.key(0), 7, A0, spread=0.05))
+    a[NAN, 3] = np.nan
+    a[HOPELESS, :6] = 10 * np.asarray(A0)[:6]  # thrust angles 10x: MAX_ITERATIONS at 150 steps
+    return a
+
+
+STARTS = _starts()
+
+
+def _leaves(sol):
+    return [np.asarray(x) for x in jax.tree.leaves(sol)]
+
+
+def _row(sol, i):
+    return jax.tree.map(lambda x: x[i], sol)
+
+
+def assert_same(got, want, tol=1e-12):
+    """Every leaf (parameters, objective, history, status, counters) equal to `tol`."""
+    for g, w in zip(_leaves(got), _leaves(want), strict=True):
+        assert g.shape == w.shape and g.dtype == w.dtype
+        if np.issubdtype(w.dtype, np.floating):
+            np.testing.assert_allclose(g, w, rtol=tol, atol=tol)
+        else:
+            np.testing.assert_array_equal(g, w)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    """The reference batch: 7 starts, 2 chunks, one device, no folder."""
+    return solve_batch(PROB, CTRL, STARTS, SOLVER, progress=False, **KW)
+
+
+@pytest.fixture(scope="module")
+def singles():
+    return {
+        i: jt.solve(PROB, CTRL, STARTS[i], SOLVER, simulator=SIM, max_steps=MAX_STEPS)
+        for i in range(len(STARTS))
+        if i != NAN
+    }
+
+
+def test_batch_equals_single_solves(batch, singles):
+    assert batch.params.shape == (7, CTRL.num_params)
+    assert batch.history.objective.shape == (7, MAX_STEPS)
+    good = [i for i in singles if i != HOPELESS]
+    for i in good:
+        assert_same(_row(batch, i), singles[i])
+    # The hopeless start wanders for 150 steps; batching changes the rounding of a few
+    # operations (vectorized reductions) at 1e-16, which that walk amplifies (to 1e-8 in
+    # the parameters, 1e-3 in its projected gradient): compare its outcome and first steps.
+    hope, single = _row(batch, HOPELESS), singles[HOPELESS]
+    assert jt.status_name(single.status) == jt.status_name(hope.status) == "MAX_ITERATIONS"
+    assert int(single.steps) == int(hope.steps) == MAX_STEPS
+    np.testing.assert_allclose(hope.history.objective[:20], single.history.objective[:20], rtol=1e-10)
+    assert all(jt.status_name(singles[i].status) == "SUCCESS" for i in good)
+    np.testing.assert_allclose(np.asarray(batch.objective)[good], 3.3248883, atol=1e-6)  # case 4's optimum
+    assert np.max(np.asarray(batch.max_constraint_error)[good]) < 1e-8
+
+
+def test_bad_starts_fail_alone_in_a_vmapped_group(batch):
+    # lanes=3: starts 0-2 (with the NaN one) share one vmapped loop, 3-5 (with the hopeless
+    # one) another; the reference batch ran every start on its own (lanes=1, the CPU default).
+    grouped = solve_batch(PROB, CTRL, STARTS, SOLVER, progress=False, lanes=3, **KW)
+    status = [jt.status_name(_row(grouped, i).status) for i in range(7)]
+    assert status[NAN] == "NONFINITE"
+    assert status[HOPELESS] == "MAX_ITERATIONS"
+    assert int(grouped.steps[HOPELESS]) == MAX_STEPS and int(grouped.steps[NAN]) == 0
+    assert [s for i, s in enumerate(status) if i not in (NAN, HOPELESS)] == ["SUCCESS"] * 5
+    assert status == [jt.status_name(_row(batch, i).status) for i in range(7)]
+    for i in range(7):
+        if i not in (NAN, HOPELESS):
+            assert_same(_row(grouped, i), _row(batch, i))
+    nan_row = _row(grouped, NAN)
+    assert np.all(np.isnan(np.asarray(nan_row.params)[[3]])) and int(nan_row.integrations) == 1
+
+
+def test_progress_lines(capsys):
+    solve_batch(PROB, CTRL, STARTS, SOLVER, progress=True, **KW)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2
+    # start 2 is the NaN one
+    assert lines[0].startswith("solve_batch: 4/7 starts (chunk 1/2)") and lines[0].endswith("success 3/4")
+    assert lines[1].startswith("solve_batch: 7/7 starts (chunk 2/2)") and lines[1].endswith("success 5/7")
+    assert "solves/s" in lines[1]
+
+
+_SHARDED = """
+import json, sys
+import jax, numpy as np
+import jaxtraj as jt
+from jaxtraj import _batch
+assert len(jax.devices()) == 4, jax.devices()
+used = []
+inner = _batch._solve_chunk
+def spy(*args):
+    out = inner(*args)
+    used.append(len(out.params.sharding.device_set))
+    return out
+_batch._solve_chunk = spy
+prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+starts = np.load(sys.argv[1])
+sols = _batch.solve_batch(prob, ctrl, starts, jt.KalmanSearch(), simulator=jt.RK4(20), max_steps=150,
+                          chunk_size=5, lanes=2, history=False, progress=False)
+np.savez(sys.argv[2], *[np.asarray(x) for x in jax.tree.leaves(sols)])
+print(json.dumps({"devices_per_chunk": used, "steps": np.asarray(sols.steps).tolist(),
+                  "status": [jt.status_name(jax.tree.map(lambda x: x[i], sols).status) for i in range(7)],
+                  "fingerprint": _batch._fingerprint((prob, ctrl, jt.KalmanSearch(), jt.RK4(20), 150))}))
+"""
+
+
+def test_sharded_over_4_host_devices_equals_unsharded(batch, tmp_path):
+    np.save(tmp_path / "starts.npy", STARTS)
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "PYTHONPATH": REPO}
+    proc = subprocess.run(
+        [sys.executable, "-c", _SHARDED, str(tmp_path / "starts.npy"), str(tmp_path / "out.npz")],
+        env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["devices_per_chunk"] == [4, 4]  # 7 starts: chunks of 5 and 2, padded to 8 rows
+    # the fingerprint used for resume checks is the same in another process
+    assert report["fingerprint"] == _batch._fingerprint((PROB, CTRL, SOLVER, SIM, MAX_STEPS))
+    with np.load(tmp_path / "out.npz") as data:
+        sharded = [data[f"arr_{i}"] for i in range(len(data.files))]
+    # history=False there: the same solution with (N, 0) history fields
+    rows = np.array([i for i in range(7) if i != HOPELESS])  # (the hopeless one: see above)
+    for got, ref in zip(sharded, _leaves(batch), strict=True):
+        if ref.ndim == 2 and ref.shape[1] == MAX_STEPS:
+            assert got.shape == (7, 0)
+        elif np.issubdtype(ref.dtype, np.floating):
+            np.testing.assert_allclose(got[rows], ref[rows], rtol=1e-12, atol=1e-12)
+        else:
+            np.testing.assert_array_equal(got[rows], ref[rows])
+    assert report["status"] == [jt.status_name(_row(batch, i).status) for i in range(7)]
+    assert report["status"][HOPELESS] == "MAX_ITERATIONS" and report["status"][NAN] == "NONFINITE"
+    assert report["steps"] == np.asarray(batch.steps).tolist()
+
+
+class _Killed(BaseException):
+    """Stands for the process being killed."""
+
+
+def test_kill_and_resume(batch, tmp_path, monkeypatch, capsys):
+    out = str(tmp_path / "run")
+    write = jt.io.atomic_write
+
+    def dies_writing_second_chunk(path, fn):
+        if path.endswith("chunk_00001.npz"):
+            def partial(f):
+                f.write(b"PK\x03\x04 half a file")
+                raise _Killed
+            return write(path, partial)
+        return write(path, fn)
+
+    monkeypatch.setattr(jt.io, "atomic_write", dies_writing_second_chunk)
+    with pytest.raises(_Killed):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, progress=False, **KW)
+    assert sorted(os.listdir(out)) == ["chunk_00000.npz", "manifest.json"]  # no partial file
+    monkeypatch.setattr(jt.io, "atomic_write", write)
+
+    calls = []
+    solve_chunk = _batch._solve_chunk
+    monkeypatch.setattr(_batch, "_solve_chunk", lambda *a: calls.append(1) or solve_chunk(*a))
+    resumed = solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **KW)
+    assert len(calls) == 1  # only the missing chunk was solved
+    err = capsys.readouterr().err
+    assert "1/2 chunk(s) already done" in err and "chunk 2/2" in err and "chunk 1/2" not in err
+    for got, want in zip(_leaves(resumed), _leaves(batch), strict=True):
+        np.testing.assert_array_equal(got, want)  # exactly, NaN history entries included
+    assert sorted(os.listdir(out)) == ["chunk_00000.npz", "chunk_00001.npz", "manifest.json"]
+
+    again = solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, progress=False, **KW)
+    assert len(calls) == 1  # a finished folder is read back, nothing is solved
+    for got, want in zip(_leaves(again), _leaves(batch), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_resume_with_other_inputs_is_refused(tmp_path):
+    out = str(tmp_path / "run")
+    os.makedirs(out)
+    manifest = {
+        "format": _batch._FORMAT, "num_starts": 7, "chunk_size": CHUNK, "num_chunks": 2, "history": True,
+        "a0s_sha256": _batch._fingerprint(STARTS),
+        "inputs_sha256": _batch._fingerprint((PROB, CTRL, SOLVER, SIM, MAX_STEPS)),
+    }
+    with open(os.path.join(out, "manifest.json"), "w") as f:
+        json.dump(manifest, f)
+    other = STARTS.copy()
+    other[0, 0] += 1e-9
+    with pytest.raises(ValueError, match=r"different inputs \(a0s_sha256"):
+        solve_batch(PROB, CTRL, other, SOLVER, out=out, resume=True, **KW)
+    with pytest.raises(ValueError, match=r"different inputs \(inputs_sha256"):
+        solve_batch(PROB, CTRL, STARTS, jt.KalmanSearch(rho=0.5), out=out, resume=True, **KW)
+    with pytest.raises(ValueError, match=r"different inputs \(inputs_sha256"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **{**KW, "max_steps": 151})
+    with pytest.raises(ValueError, match=r"chunk_size: on disk 4, now 3"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **{**KW, "chunk_size": 3})
+    other_prob = jt.problems.earth_mars.problem(mu=1.01)
+    with pytest.raises(ValueError, match=r"inputs_sha256"):
+        solve_batch(other_prob, CTRL, STARTS, SOLVER, out=out, resume=True, **KW)
+    with pytest.raises(ValueError, match=r"already holds a batch run"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, **KW)
+
+
+def test_bad_arguments():
+    def call(a0s=STARTS, **kw):
+        return solve_batch(PROB, CTRL, a0s, SOLVER, **{**KW, **kw})
+
+    with pytest.raises(ValueError, match=r"`a0s` must have shape \(N, 7\).*got \(7,\)"):
+        call(STARTS[0])
+    with pytest.raises(ValueError, match=r"`a0s` must have shape \(N, 7\).*got \(7, 6\)"):
+        call(STARTS[:, :6])
+    with pytest.raises(ValueError, match=r"`a0s` must have shape.*got \(0, 7\)"):
+        call(STARTS[:0])
+    with pytest.raises(ValueError, match=r"`a0s` must be a real numeric array"):
+        call(STARTS.astype(complex))
+    for bad in (0, -1, 2.0, True):
+        with pytest.raises(ValueError, match=r"`chunk_size` must be an int >= 1"):
+            call(chunk_size=bad)
+    with pytest.raises(ValueError, match=r"`devices`"):
+        call(devices=[])
+    with pytest.raises(ValueError, match=r"`devices`"):
+        call(devices=["cpu"])
+    with pytest.raises(ValueError, match=r"`resume=True` needs `out`"):
+        call(resume=True)
+    with pytest.raises(ValueError, match=r"`progress` must be True or False"):
+        call(progress=1)
+    with pytest.raises(ValueError, match=r"`max_steps`"):
+        call(max_steps=0)
+    with pytest.raises(ValueError, match=r"`around` is required"):
+        multistart(PROB, CTRL, jax.random.key(0), 4)
+    with pytest.raises(ValueError, match=r"`n` must be an int >= 1"):
+        random_starts(PROB, CTRL, jax.random.key(0), 0, A0)
+    with pytest.raises(ValueError, match=r"`key` must be a JAX PRNG key"):
+        random_starts(PROB, CTRL, 0, 3, A0)
+    with pytest.raises(ValueError, match=r"`spread` must be >= 0"):
+        random_starts(PROB, CTRL, jax.random.key(0), 3, A0, spread=-0.1)
+
+
+C = jt.controls
+
+
+@pytest.mark.parametrize(
+    "ctrl",
+    [
+        C.PiecewiseLinear(4, continuous=True, free_times=True),
+        C.PiecewiseLinear(3, continuous=False, free_times=True),
+        C.PiecewiseParabolic(2),
+        C.PiecewiseConstant(3, free_times=False),
+        C.SaturatedSpline(4, 2, 0.0, 4.0),
+    ],
+    ids=lambda c: repr(c)[:60],
+)
+def test_random_starts_are_valid_and_bounded(ctrl):
+    prob = jt.problems.earth_mars.problem()
+    bounded = jt.Problem(prob.dynamics, prob.x0, prob.terminal, prob.constraint_names, args=prob.args,
+                         control_lower=[0.0], control_upper=[4.0])
+    around = ctrl.initial_guess(3.4, 0.0, 1.5 * np.pi)
+    starts = np.asarray(random_starts(bounded, ctrl, jax.random.key(3), 40, around, spread=0.5))
+    assert starts.shape == (40, ctrl.num_params) and starts.dtype == np.float64
+    for a in starts:
+        ctrl.validate(a)  # times increasing, tf > 0
+    idx, _, _ = _batch._value_slots(ctrl, bounded)
+    assert idx.size > 0 and np.all(starts[:, idx] >= 0.0) and np.all(starts[:, idx] <= 4.0)
+    assert np.any(starts[:, idx] == 0.0) and np.any(starts[:, idx] == 4.0)  # clipping happened
+    t = list(ctrl.time_indices)
+    assert np.std(starts[:, t], axis=0).min() > 0.01  # the times are perturbed too
+    tf = np.asarray(jax.vmap(ctrl.tf)(jnp.asarray(starts)))
+    assert 0.8 * 3.4 < np.median(tf) < 1.2 * 3.4
+    again = np.asarray(random_starts(bounded, ctrl, jax.random.key(3), 40, around, spread=0.5))
+    np.testing.assert_array_equal(starts, again)
+
+
+def test_cluster_objectives():
+    values = np.array([3.0, 3.0 + 1e-9, 4.1, 3.0 - 2e-9, 4.1 + 3e-7, 5.0])
+    optima = _batch._cluster(values, np.arange(6) + 10, 1e-7)
+    assert optima == ((3.0 - 2e-9, 3, 13), (4.1, 2, 12), (5.0, 1, 15))
+
+
+def test_multistart_reproducible(batch):
+    kw = dict(around=A0, spread=0.05, solver=SOLVER, progress=False, **KW)
+    r1 = multistart(PROB, CTRL, jax.random.key(7), 7, **kw)
+    r2 = multistart(PROB, CTRL, jax.random.key(7), 7, **kw)
+    r3 = multistart(PROB, CTRL, jax.random.key(8), 7, **kw)
+    assert isinstance(r1, MultistartResult)
+    np.testing.assert_array_equal(r1.starts, r2.starts)
+    for got, want in zip(_leaves(r1.solutions), _leaves(r2.solutions), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert not np.any(np.asarray(r1.starts) == np.asarray(r3.starts))
+    for a in np.asarray(r1.starts):
+        CTRL.validate(a)
+    ok = np.asarray(r1.solutions.status == jt.Status.SUCCESS)
+    np.testing.assert_array_equal(r1.success, ok)
+    assert r1.success_rate == ok.mean() > 0.5
+    obj = np.asarray(r1.solutions.objective)
+    assert r1.best_index == int(np.flatnonzero(ok)[np.argmin(obj[ok])])
+    assert float(r1.best.objective) == obj[ok].min()
+    assert abs(float(r1.best.objective) - 3.3248883) < 1e-6
+    assert sum(c for _, c, _ in r1.optima) == ok.sum()
+    assert r1.optima[0][0] == obj[ok].min() and r1.optima[0][2] == r1.best_index
+    text = str(r1)
+    assert f"{ok.sum()} SUCCESS" in text and "| optimum |" in text and f"{r1.optima[0][0]:.10g}" in text
+    assert r1.wall_time > 0 and r1.solves_per_second > 0
+
+
+_HOST = """
+import sys
+import jax
+jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.distributed.initialize(f"localhost:{sys.argv[1]}", num_processes=2, process_id=int(sys.argv[2]))
+import numpy as np
+import jaxtraj as jt
+from jaxtraj._batch import solve_batch
+assert len(jax.devices()) == 2 and len(jax.local_devices()) == 1
+prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+sols = solve_batch(prob, ctrl, np.load(sys.argv[3]), jt.KalmanSearch(), simulator=jt.RK4(20), max_steps=150,
+                   chunk_size=4, out=sys.argv[4], progress=True)
+np.savez(sys.argv[5], *[np.asarray(x) for x in jax.tree.leaves(sols)])
+"""
+
+
+def test_two_hosts_with_jax_distributed(batch, tmp_path):
+    """The module docstring's multi-host recipe, with two processes on this machine: each
+    returns the whole batch; only process 0 prints and writes the folder."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = str(s.getsockname()[1])
+    np.save(tmp_path / "starts.npy", STARTS)
+    env = {**os.environ, "PYTHONPATH": REPO}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _HOST, port, str(i), str(tmp_path / "starts.npy"), str(tmp_path / "run"),
+             str(tmp_path / f"out{i}.npz")],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        for i in range(2)
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    for p, (_, err) in zip(procs, outs):
+        assert p.returncode == 0, err[-3000:]
+    assert "solve_batch: 7/7 starts" in outs[0][1] and "solve_batch:" not in outs[1][1]
+    assert sorted(os.listdir(tmp_path / "run")) == ["chunk_00000.npz", "chunk_00001.npz", "manifest.json"]
+    for i in range(2):
+        with np.load(tmp_path / f"out{i}.npz") as data:
+            got = [data[f"arr_{j}"] for j in range(len(data.files))]
+        for g, w in zip(got, _leaves(batch), strict=True):
+            np.testing.assert_array_equal(g, w)
