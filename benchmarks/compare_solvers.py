@@ -2,6 +2,10 @@
 Earth-Mars cases, all on the same simulate/Jacobian functions (RK4, 100 steps per segment,
 forward-mode sensitivities) and the same published starting vectors.
 
+KalmanSQP is the default (`exact_iterations=3`: exact Lagrangian Hessians for the first three
+iterations, then BFGS); "pure BFGS" starts BFGS from a0's exact Hessian; "exact" uses exact
+Hessians throughout.
+
 Per case and solver: final tf, max |E|, projected gradient, iterations, integrations, first
 call (compile + solve) and warm solve time (best of 3), and the warm-time ratio to KalmanSQP
 measured in the same run. Also writes `benchmarks/convergence_case5.png`: max |E| and
@@ -56,6 +60,7 @@ def run_case(case):
     solvers = {
         "KalmanSearch": EM.thesis_solver(case),
         "KalmanSQP": jt.KalmanSQP(),
+        "KalmanSQP pure BFGS": jt.KalmanSQP(exact_iterations=0),
         "KalmanSQP exact": jt.KalmanSQP(hessian="exact"),
     }
     rows = {}

@@ -69,11 +69,11 @@ def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
 
 
 def _check_solver(solver, max_steps):
-    """The solver to use (default `jt.KalmanSearch()`), after checking it and `max_steps`."""
+    """The solver to use (default `jt.KalmanSQP()`), after checking it and `max_steps`."""
     if solver is None:
-        from ._kalman_search import KalmanSearch  # it imports this module
+        from ._kalman_sqp import KalmanSQP  # it imports this module
 
-        solver = KalmanSearch()
+        solver = KalmanSQP()
     if not isinstance(solver, AbstractSolver):
         raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
     if not (isinstance(max_steps, int) and max_steps >= 1):
@@ -96,7 +96,7 @@ def solve(
     **Arguments:**
 
     - `problem`: a `jt.Problem`; `control`: a control family; `a0`: the starting vector.
-    - `solver`: default `jt.KalmanSearch()` (the source thesis's method).
+    - `solver`: default `jt.KalmanSQP()`; `jt.KalmanSearch()` is the source thesis's method.
     - `simulator`: keyword-only, default `jt.RK4(100)`.
     - `max_steps`: keyword-only cap on candidate integrations (static: changing it
       recompiles).

@@ -31,7 +31,7 @@ def test_min_energy_double_integrator_analytic_optimum(segments):
 @pytest.mark.parametrize("case", [4, 5])
 def test_thesis_cases_reach_the_restricted_optimum(case):
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
-    sol = jt.solve(prob, ctrl, a0)
+    sol = jt.solve(prob, ctrl, a0, jt.KalmanSearch())
     assert sol.status == jt.Status.SUCCESS
     assert float(sol.max_constraint_error) <= 1e-8
     ref = solve_slsqp(prob, ctrl, a0)  # independent optimizer, same simulate/Jacobian
@@ -46,10 +46,10 @@ def test_vmap_over_starts_matches_single_solves():
     rng = np.random.default_rng(0)
     starts = np.asarray(a0)[None, :] + 0.05 * rng.standard_normal((8, ctrl.num_params))
     starts[:, -1] = 3.4 + 0.1 * rng.standard_normal(8)
-    batch = jt.solve_batch(prob, ctrl, starts, max_steps=600)
+    batch = jt.solve_batch(prob, ctrl, starts, jt.KalmanSearch(), max_steps=600)
     assert batch.params.shape == (8, ctrl.num_params)
     for i in range(8):
-        single = jt.solve(prob, ctrl, starts[i], max_steps=600)
+        single = jt.solve(prob, ctrl, starts[i], jt.KalmanSearch(), max_steps=600)
         # Batched XLA kernels round differently in the last bits, and accept/reject
         # decisions can then differ near convergence: equal to the solver's tolerance.
         assert bool((batch.status == jt.Status.SUCCESS)[i]) and single.status == jt.Status.SUCCESS
@@ -60,7 +60,7 @@ def test_vmap_over_starts_matches_single_solves():
 def test_bad_start_in_a_batch_does_not_spoil_the_others():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
     starts = jnp.stack([a0, a0.at[2].set(jnp.nan), a0 + 0.01])
-    sols = jt.solve_batch(prob, ctrl, starts, max_steps=600)
+    sols = jt.solve_batch(prob, ctrl, starts, jt.KalmanSearch(), max_steps=600)
     np.testing.assert_array_equal(sols.status == jt.Status.NONFINITE, [False, True, False])
     np.testing.assert_array_equal(sols.status == jt.Status.SUCCESS, [True, False, True])
     assert abs(float(sols.tf[0]) - float(sols.tf[2])) < 1e-6
@@ -79,7 +79,7 @@ def test_solve_compiles_once_for_new_starting_values():
 
 def test_iteration_limit_is_a_status_and_history_is_recorded():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(5)
-    sol = jt.solve(prob, ctrl, a0, max_steps=5)
+    sol = jt.solve(prob, ctrl, a0, jt.KalmanSearch(), max_steps=5)
     assert sol.status == jt.Status.MAX_ITERATIONS
     assert int(sol.steps) == 5 and int(sol.integrations) == 6
     h = sol.history

@@ -133,22 +133,27 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
 @pytest.mark.parametrize("case", range(1, 8))
 def test_seven_cases_to_kkt_tolerance(case):
     """All seven published starts: |E|max <= 1e-10 and projected gradient <= 1e-8, at the
-    SLSQP optimum (same simulate/Jacobian) except case 3, where the SQP path from the
-    published start ends in another local minimum (3.35114): checked as one by SLSQP
-    started there, which stays."""
+    optimum SLSQP finds from the same start with the same simulate/Jacobian."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
-    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP())
+    sol = jt.solve(prob, ctrl, a0)  # the default solver is KalmanSQP()
     assert sol.status == jt.Status.SUCCESS
     assert float(sol.max_constraint_error) <= 1e-10
     assert float(sol.projected_gradient) <= 1e-8
-    if case == 3:
-        ref = solve_slsqp(prob, ctrl, sol.params)
-        assert abs(ref.tf - float(sol.tf)) < 1e-7 and ref.max_constraint_error < 1e-9
-        assert float(sol.tf) > SLSQP_OPTIMA[3] + 0.02
-    else:
-        assert abs(float(sol.tf) - SLSQP_OPTIMA[case]) < 2e-8
+    assert abs(float(sol.tf) - SLSQP_OPTIMA[case]) < 2e-8
     if case in (4, 5):  # fewer iterations than the thesis (which stopped at |E| ~ 1e-4)
         assert int(sol.iterations) < jt.problems.earth_mars.PUBLISHED[case][1]
+
+
+def test_pure_bfgs_ends_in_another_local_minimum_on_case_3():
+    """Why the first iterations use exact Hessians: with BFGS from a0's Hessian alone, the
+    path from case 3's published start ends in another local minimum (3.35114), confirmed
+    as one by SLSQP started there, which stays."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(3)
+    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(exact_iterations=0))
+    assert sol.status == jt.Status.SUCCESS and float(sol.max_constraint_error) <= 1e-10
+    assert float(sol.tf) > SLSQP_OPTIMA[3] + 0.02
+    ref = solve_slsqp(prob, ctrl, sol.params)
+    assert abs(ref.tf - float(sol.tf)) < 1e-7 and ref.max_constraint_error < 1e-9
 
 
 def test_superlinear_convergence_on_case_4():
@@ -166,10 +171,11 @@ def test_superlinear_convergence_on_case_4():
             dist.append(np.linalg.norm(np.asarray(state.a) - a_star))
     assert state.status == jt.Status.SUCCESS
     ratios = np.array(dist[1:]) / np.array(dist[:-1])
+    # measured: 0.85 0.72 0.47 0.32 0.22 0.04 0.08 0.09 0.03 0.12 0.07 (the last ones at
+    # distances 1e-7..4e-9, where the reference's own error, ~1e-9, starts to show)
     assert dist[-1] < 1e-7
-    assert ratios[:3].mean() > 0.5  # linear, far away
-    assert ratios[-3:].max() < 0.15  # and ever faster near the solution
-    assert ratios[-2:].mean() < 0.1 * ratios[:3].mean()
+    assert ratios[:3].mean() > 0.5  # slow far away
+    assert len(ratios[5:]) >= 4 and ratios[5:].max() < 0.15  # an order of magnitude per step near a*
 
 
 @pytest.mark.parametrize("hessian", ["bfgs", "exact"])
@@ -204,7 +210,7 @@ def test_batch_and_bad_start():
 
 @pytest.mark.parametrize(
     "kwargs", [{"hessian": "newton"}, {"method": "fd"}, {"hessian": "exact", "method": "unit"}, {"ctol": 0.0},
-               {"armijo": 0.7}, {"radius": -1.0}]
+               {"armijo": 0.7}, {"radius": -1.0}, {"exact_iterations": -1}, {"exact_iterations": 1.5}]
 )
 def test_bad_settings(kwargs):
     with pytest.raises(ValueError, match="KalmanSQP"):
