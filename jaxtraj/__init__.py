@@ -48,6 +48,20 @@ from ._simulate import (  # noqa: E402
 )
 from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
 from ._kalman_sqp import KalmanSQP as KalmanSQP  # noqa: E402
+from .feedback import (  # noqa: E402
+    ClosedLoopTrajectory as ClosedLoopTrajectory,
+    ControlErrors as ControlErrors,
+    Dispersion as Dispersion,
+    ExecutionErrors as ExecutionErrors,
+    Linearization as Linearization,
+    MonteCarloResult as MonteCarloResult,
+    ThrustErrors as ThrustErrors,
+    bryson_weights as bryson_weights,
+    linearize as linearize,
+    monte_carlo as monte_carlo,
+    simulate_closed_loop as simulate_closed_loop,
+    tracking_lqr as tracking_lqr,
+)
 from .metaheuristics import Dragonfly as Dragonfly, GreyWolf as GreyWolf, Whale as Whale  # noqa: E402
 from ._solution import History as History, Solution as Solution  # noqa: E402
 from ._solve import AbstractSolver as AbstractSolver, solve as solve  # noqa: E402

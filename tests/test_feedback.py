@@ -1,7 +1,9 @@
 """Linear-quadratic core (jaxtraj.feedback) against closed forms and scipy: the continuous
 Riccati ODE (seed 001 eq. 1.44), the discrete recursion (1.23-1.24) and its stationary limit,
 the multiplicative-noise gain (2.19), the additive-noise cost (2.20 / 3.87), zero-order hold,
-and covariance propagation."""
+and covariance propagation; then the trajectory layer: linearization against finite
+differences and zoh_discretize, closed-loop reproduction of the reference, and Monte Carlo
+statistics against propagated covariances."""
 
 import itertools
 
@@ -12,11 +14,22 @@ import pytest
 import scipy.integrate
 import scipy.linalg
 
+import jaxtraj as jt
 from jaxtraj.feedback import (
+    ControlErrors,
+    DiscreteLQRGains,
+    ExecutionErrors,
+    LQRGains,
+    ThrustErrors,
+    bryson_weights,
     continuous_lqr,
     discrete_lqr,
+    linearize,
+    monte_carlo,
     propagate_covariance,
     propagate_covariance_continuous,
+    simulate_closed_loop,
+    tracking_lqr,
     zoh_discretize,
 )
 
@@ -376,3 +389,264 @@ def test_shape_errors_name_the_argument():
         zoh_discretize(jnp.eye(2), jnp.ones((3, 1)), 0.1)
     with pytest.raises(ValueError, match="`W`"):
         propagate_covariance(jnp.eye(2), A, jnp.eye(3))
+
+
+# ---------------------------------------------------------------------------------------------
+# Linearization, closed-loop simulation, Monte Carlo
+# ---------------------------------------------------------------------------------------------
+#
+# Statistical bound used below: for n i.i.d. Gaussian samples of x ~ N(mu, P), the sample mean
+# has standard deviation sqrt(P_ii / n) and the unbiased sample covariance S has
+# Var(S_ij) = (P_ij^2 + P_ii P_jj) / (n - 1) (Wishart). We require every entry within 5 of
+# these standard deviations (a false alarm per entry has probability < 6e-7 for a fresh seed;
+# the seeds are fixed, so the tests are deterministic).
+
+
+def _within_5_sigma(samples, mu, P):
+    n = samples.shape[0]
+    mean, S = np.mean(samples, axis=0), np.cov(samples.T)
+    d = np.diag(P)
+    assert np.all(np.abs(mean - mu) <= 5 * np.sqrt(d / n)), (mean, mu)
+    sd = np.sqrt((P**2 + np.outer(d, d)) / (n - 1))
+    assert np.all(np.abs(S - P) <= 5 * sd), (S, P, sd)
+
+
+def _linear_dynamics(t, x, u, args):
+    return args["A"] @ x + args["B"] @ u
+
+
+def _identity_terminal(tf, xf, args):
+    return xf
+
+
+def _linear_problem(A, B):
+    return jt.Problem(
+        _linear_dynamics,
+        x0=[1.0, 0.0],
+        terminal=_identity_terminal,
+        constraint_names=("x1", "x2"),
+        args={"A": jnp.asarray(A), "B": jnp.asarray(B)},
+    )
+
+
+# Double integrator (neutrally stable: open-loop dispersion grows like t^3), sampled at 50
+# control samples over tf = 2 (RK4(25) on 2 segments).
+_DI_A, _DI_B = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]])
+_DI_CTRL, _DI_PARAMS, _DI_SIM = jt.controls.PiecewiseLinear(2), [0.5, -0.3, 0.2, 2.0], jt.RK4(25)
+_DI_W, _DI_P0, _DI_SIGMA_U = np.diag([0.01, 0.04]), np.diag([0.01, 0.02]), 0.1
+
+
+@pytest.fixture(scope="module")
+def double_integrator():
+    prob = _linear_problem(_DI_A, _DI_B)
+    lin = linearize(
+        prob, _DI_CTRL, _DI_PARAMS, simulator=_DI_SIM, execution=ControlErrors(additive=_DI_SIGMA_U)
+    )
+    gains = tracking_lqr(lin, np.eye(2), 0.1 * np.eye(1), 10 * np.eye(2))
+    noise = {
+        "execution": ControlErrors(additive=_DI_SIGMA_U),
+        "process_noise": _DI_W,
+        "initial_covariance": _DI_P0,
+        "simulator": _DI_SIM,
+    }
+    key = jax.random.key(42)
+    runs = {
+        "open": monte_carlo(prob, _DI_CTRL, _DI_PARAMS, key, 4000, **noise),
+        "closed": monte_carlo(prob, _DI_CTRL, _DI_PARAMS, key, 4000, gains=gains, **noise),
+    }
+    return prob, lin, gains, runs
+
+
+def _propagated(lin, K):
+    """Covariance of the sampled loop from the independent ZOH matrices (expm):
+    x_{k+1} = (Ad - Bd K_k) x_k + Gd w_k + Bd sigma xi_k, w_k ~ N(0, W / dt) (process noise
+    held over a sample), xi_k ~ N(0, 1)."""
+    dt = float(lin.dt[0])
+    Ad, Bd = zoh_discretize(_DI_A, _DI_B, dt)
+    _, Gd = zoh_discretize(_DI_A, np.eye(2), dt)
+    G = jnp.concatenate([Gd, Bd], axis=1)
+    Wk = scipy.linalg.block_diag(_DI_W / dt, [[_DI_SIGMA_U**2]])
+    N = lin.dt.shape[0]
+    F = jnp.broadcast_to(Ad, (N, 2, 2)) - (0.0 if K is None else Bd @ K)
+    return propagate_covariance(_DI_P0, F, Wk, G)[-1], (Ad, Bd, Gd)
+
+
+@pytest.mark.parametrize("loop", ["open", "closed"])
+def test_monte_carlo_of_linear_system_matches_propagated_covariance(double_integrator, loop):
+    """Mean = the noise-free reference, covariance = propagate_covariance, within 5 sigma of
+    the sample estimators (see the bound above)."""
+    _, lin, gains, runs = double_integrator
+    r = runs[loop]
+    P, (Ad, Bd, Gd) = _propagated(lin, gains.K if loop == "closed" else None)
+    # the sampled-data linearization is the ZOH discretization (RK4 vs expm: O(dt^5) per step)
+    assert _rel(lin.Ad, np.broadcast_to(Ad, lin.Ad.shape)) < 1e-8
+    assert _rel(lin.Bd, np.broadcast_to(Bd, lin.Bd.shape)) < 1e-8
+    assert _rel(lin.Gd, np.broadcast_to(Gd, lin.Gd.shape)) < 1e-8
+    assert int(r.num_failed) == 0 and r.final_states.shape == (4000, 2)
+    _within_5_sigma(np.asarray(r.final_states), np.asarray(lin.x[-1]), np.asarray(P))
+    np.testing.assert_allclose(r.terminal_errors, r.final_states)  # E = x(tf) here
+    np.testing.assert_allclose(r.terminal_covariance, np.cov(np.asarray(r.final_states).T))
+    # the library's own linear covariance analysis agrees with the independent one
+    Pl = lin.predict_covariance(
+        gains if loop == "closed" else None, initial_covariance=_DI_P0, process_noise=_DI_W
+    )
+    assert Pl.shape == (51, 2, 2) and _rel(Pl[-1], P) < 1e-7
+
+
+def test_closed_loop_shrinks_terminal_covariance_of_neutrally_stable_system(double_integrator):
+    _, _, _, runs = double_integrator
+    open_, closed = runs["open"], runs["closed"]
+    assert np.trace(closed.terminal_covariance) < 0.1 * np.trace(open_.terminal_covariance)
+    assert np.all(open_.correction_rms == 0.0) and np.all(closed.correction_rms > 0.0)
+    # percentiles bracket the median, which is near the mean for a Gaussian
+    pct = np.asarray(closed.terminal_percentiles)
+    assert pct.shape == (5, 2) and np.all(np.diff(pct, axis=0) > 0)
+    assert np.all(np.abs(pct[2] - closed.terminal_mean) < 0.1 * closed.terminal_std)
+
+
+def test_monte_carlo_reproducible_and_run_i_independent_of_n():
+    prob = _linear_problem(_DI_A, _DI_B)
+    kw = {"process_noise": _DI_W, "simulator": _DI_SIM, "return_trajectories": True}
+    a = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(7), 20, **kw)
+    b = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(7), 20, **kw)
+    np.testing.assert_array_equal(a.final_states, b.final_states)
+    d = a.dispersion
+    assert d.percentiles.shape == (5, 51, 2) and d.mean.shape == (51, 2)
+    e = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(7), 20, dispersion_stride=20, **kw)
+    np.testing.assert_array_equal(e.dispersion.t, d.t[np.array([0, 20, 40, 50])])
+    np.testing.assert_array_equal(e.dispersion.percentiles, d.percentiles[:, [0, 20, 40, 50]])
+    np.testing.assert_allclose(d.mean[-1], np.mean(a.final_states, axis=0), rtol=1e-12)
+    np.testing.assert_array_equal(d.mean[0], prob.x0)  # no initial dispersion
+    # run i = simulate_closed_loop with the key fold_in(key, i): it does not depend on n
+    one = simulate_closed_loop(
+        prob,
+        _DI_CTRL,
+        _DI_PARAMS,
+        jax.random.fold_in(jax.random.key(7), 3),
+        process_noise=_DI_W,
+        simulator=_DI_SIM,
+    )
+    np.testing.assert_allclose(one.xf, a.final_states[3], rtol=1e-13)
+    np.testing.assert_allclose(one.x[-1], one.xf, rtol=0)
+
+
+def test_bias_execution_error_and_user_execution_model():
+    """correlation_time = inf: xi is drawn once per run, so the terminal deviation of a
+    linear system is a fixed vector times one scalar: a rank-one covariance. A user-defined
+    ExecutionErrors with the same formula gives the same runs."""
+    prob = _linear_problem(_DI_A, _DI_B)
+    args = (prob, _DI_CTRL, _DI_PARAMS, jax.random.key(1), 4000)
+    # zero process noise and initial covariance: the open-loop configuration of the fixture
+    # (compiled once; correlation_time is traced)
+    zero = np.zeros((2, 2))
+    kw = {"correlation_time": jnp.inf, "simulator": _DI_SIM, "process_noise": zero}
+    kw["initial_covariance"] = zero
+    r = monte_carlo(*args, execution=ControlErrors(additive=_DI_SIGMA_U), **kw)
+    ev = np.linalg.eigvalsh(np.asarray(r.terminal_covariance))
+    assert ev[0] < 1e-12 * ev[1] and ev[1] > 0
+    custom = ExecutionErrors(lambda t, u, xi, args: (u + _DI_SIGMA_U * xi[1:], args), 2)
+    c = monte_carlo(*args, execution=custom, **kw)
+    np.testing.assert_allclose(c.final_states, r.final_states, rtol=1e-14)
+
+
+_EM_SIM = jt.RK4(10)  # 70 control samples on case 5: cheap, enough for these checks
+
+
+@pytest.fixture(scope="module")
+def earth_mars():
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(5)
+    lin = linearize(prob, ctrl, a0, simulator=_EM_SIM, execution=ThrustErrors(0.002, 0.2))
+    return prob, ctrl, a0, lin
+
+
+def test_linearization_matches_finite_differences(earth_mars):
+    prob, ctrl, a0, lin = earth_mars
+    ref = jt.simulate(prob, ctrl, a0, simulator=_EM_SIM)
+    # the reference is jt.simulate's RK4 solution (bit for bit), on the step boundaries
+    np.testing.assert_array_equal(lin.x[-1], ref.xf)
+    np.testing.assert_array_equal(lin.x[10], ref.x[11])  # ref.x repeats each knot
+    assert lin.status == jt.Status.SUCCESS
+    f = lambda t, x, u: np.asarray(prob.dynamics(t, jnp.asarray(x), jnp.asarray(u), prob.args))
+    for k in (0, 13, 35, 70):
+        t, x, u = float(lin.t[k]), np.asarray(lin.x[k]), np.asarray(lin.u[k])
+        A = np.stack([(f(t, x + e, u) - f(t, x - e, u)) / 2e-6 for e in 1e-6 * np.eye(3)], 1)
+        B = ((f(t, x, u + 1e-6) - f(t, x, u - 1e-6)) / 2e-6)[:, None]
+        assert _rel(lin.A[k], A) < 1e-8 and _rel(lin.B[k], B) < 1e-8
+    np.testing.assert_allclose(lin.A_fn(0.5 * (lin.t[3] + lin.t[4])), 0.5 * (lin.A[3] + lin.A[4]))
+    assert lin.Ed.shape == (70, 3, 2) and lin.Gd.shape == (70, 3, 3)
+
+
+def test_zero_noise_closed_loop_reproduces_reference(earth_mars):
+    prob, ctrl, a0, lin = earth_mars
+    T = float(lin.t[-1])
+    Q, R, Qf = bryson_weights(lin, 1e-3, 0.05, [1e-4, 1e-4, 1e-4])
+    np.testing.assert_allclose(Q, np.eye(3) / (T * 1e-6), rtol=1e-14)
+    np.testing.assert_allclose(R, np.eye(1) / (T * 0.05**2), rtol=1e-14)
+    np.testing.assert_allclose(Qf, np.eye(3) / 1e-8, rtol=1e-14)
+    gains = tracking_lqr(lin, Q, R, Qf)
+    assert isinstance(gains, DiscreteLQRGains) and gains.K.shape == (70, 1, 3)
+    xf = jt.simulate(prob, ctrl, a0, simulator=_EM_SIM).xf
+    r = monte_carlo(prob, ctrl, a0, jax.random.key(0), 3, gains=gains, simulator=_EM_SIM)
+    assert np.max(np.abs(np.asarray(r.final_states) - np.asarray(xf))) < 1e-8
+    assert np.max(np.abs(r.correction_rms)) < 1e-8
+    one = simulate_closed_loop(prob, ctrl, a0, None, gains=gains, simulator=_EM_SIM)
+    assert np.max(np.abs(one.x - lin.x)) < 1e-8 and one.u.shape == (70, 1)
+
+
+def test_earth_mars_open_loop_covariance_matches_linear_analysis(earth_mars):
+    """Small thrust errors (0.2 %, 0.2 deg): the nonlinear Monte Carlo agrees with the linear
+    covariance analysis (lin.Ad, lin.Ed) within the 5-sigma sampling bound; this checks the
+    execution-error model and its Jacobian Ed."""
+    prob, ctrl, a0, lin = earth_mars
+    r = monte_carlo(
+        prob,
+        ctrl,
+        a0,
+        jax.random.key(3),
+        4000,
+        sigma_thrust=0.002,
+        sigma_pointing_deg=0.2,
+        simulator=_EM_SIM,
+    )
+    P = np.asarray(lin.predict_covariance())[-1]
+    _within_5_sigma(np.asarray(r.final_states), np.asarray(lin.x[-1]), P)
+
+
+def test_continuous_gains_close_to_sampled_gains(double_integrator):
+    _, lin, gains, _ = double_integrator
+    g = tracking_lqr(lin, np.eye(2), 0.1 * np.eye(1), 10 * np.eye(2), discrete=False)
+    assert isinstance(g, LQRGains) and g.K.shape == (51, 1, 2)
+    A, B, Q, R = _DI_A, _DI_B, np.eye(2), 0.1 * np.eye(1)
+
+    def rhs(t, s):
+        S = s.reshape(2, 2)
+        return -(A.T @ S + S @ A - S @ B @ np.linalg.solve(R, B.T @ S) + Q).ravel()
+
+    ts = np.asarray(lin.t)
+    sol = scipy.integrate.solve_ivp(
+        rhs, (2.0, 0.0), 10 * np.eye(2).ravel(), "DOP853", t_eval=ts[::-1], rtol=1e-12, atol=1e-14
+    )
+    K = np.stack([np.linalg.solve(R, B.T @ S.reshape(2, 2)) for S in sol.y.T[::-1]])
+    assert _rel(g.K, K) < 1e-8
+    # the sampled (ZOH) gains differ from the continuous ones by O(dt |A - B K|) (dt = 0.04,
+    # |A - B K| ~ 5 here; convergence in dt: test_continuous_is_the_limit_of_discrete_zoh)
+    assert _rel(gains.K, g.K[:-1]) < 0.15
+
+
+def test_monte_carlo_argument_errors():
+    prob = _linear_problem(_DI_A, _DI_B)
+    args = (prob, _DI_CTRL, _DI_PARAMS, jax.random.key(0))
+    with pytest.raises(ValueError, match="`n`"):
+        monte_carlo(*args, 1)
+    with pytest.raises(ValueError, match="`simulator`"):
+        monte_carlo(*args, 10, simulator=jt.Diffrax())
+    with pytest.raises(ValueError, match="`gains`"):
+        monte_carlo(*args, 10, gains=np.zeros((7, 1, 2)))
+    with pytest.raises(ValueError, match="thrust"):
+        monte_carlo(*args, 10, sigma_thrust=0.01)
+    with pytest.raises(ValueError, match="not both"):
+        monte_carlo(*args, 10, sigma_pointing_deg=1.0, execution=ControlErrors(0.1))
+    with pytest.raises(ValueError, match="`process_noise`"):
+        monte_carlo(*args, 10, process_noise=-np.eye(2))
+    with pytest.raises(ValueError, match="`additive`"):
+        monte_carlo(*args, 10, execution=ControlErrors(additive=[0.1, 0.2]))
