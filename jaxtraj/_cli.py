@@ -7,6 +7,7 @@ No JAX work at import time; every failure the user can cause ends in a one-line
 import argparse
 import contextlib
 import datetime
+import json
 import io as io_module
 import os
 import sys
@@ -45,6 +46,9 @@ def _parser():
                         "sqp-exact (KalmanSQP, exact Hessian)")
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
+    s.add_argument("--monte-carlo", type=int, default=0, metavar="N",
+                   help="after the solve: N noisy runs (1%% thrust magnitude, 1 deg pointing), open loop vs "
+                        "time-varying LQR closed loop (earth-mars)")
     s.add_argument("--resume", action="store_true",
                    help="with --starts > 1 and the --out of an interrupted run: skip the chunks already solved")
     s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
@@ -148,11 +152,44 @@ def _check_out(folder):
         raise _UsageError(f"cannot write to --out {folder!r}: {e.strerror or e}") from None
 
 
+def _monte_carlo(prob, ctrl, sol, sim, args):
+    """Open vs closed loop (sampled time-varying LQR, Bryson weights) terminal dispersion for
+    1 % thrust-magnitude and 1 deg pointing errors; prints a table, returns the numbers."""
+    import jax
+    import numpy as np
+
+    import jaxtraj as jt
+
+    errors = jt.ThrustErrors(0.01, 1.0)
+    lin = jt.linearize(prob, ctrl, sol.params, simulator=sim, execution=errors)
+    gains = jt.tracking_lqr(lin, *jt.bryson_weights(lin, 1e-3, 0.05, 1e-4))
+    key = jax.random.key(args.seed)
+    print(f"Monte Carlo: {args.monte_carlo} runs each, 1 % thrust magnitude and 1 deg pointing errors "
+          "(white per control sample), LQR with Bryson weights", flush=True)
+    runs = {name: jt.monte_carlo(prob, ctrl, sol.params, key, args.monte_carlo, gains=g, execution=errors,
+                                 simulator=sim) for name, g in (("open loop", None), ("closed loop", gains))}
+    print(f"  {'terminal error':<22}" + "".join(f"{n + ' mean':>18}{n + ' std':>18}" for n in runs))
+    for i, name in enumerate(prob.constraint_names):
+        row = "".join(f"{float(r.terminal_mean[i]):>18.3e}{float(r.terminal_std[i]):>18.3e}" for r in runs.values())
+        print(f"  {name:<22}{row}")
+    traces = {n: float(np.trace(np.asarray(r.terminal_covariance))) for n, r in runs.items()}
+    ratio = traces["closed loop"] / traces["open loop"]
+    print(f"  covariance trace: open {traces['open loop']:.3e}, closed {traces['closed loop']:.3e} (ratio {ratio:.4f})")
+    return {"runs": args.monte_carlo, "sigma_thrust": 0.01, "sigma_pointing_deg": 1.0,
+            **{n: {"mean": np.asarray(r.terminal_mean).tolist(), "std": np.asarray(r.terminal_std).tolist(),
+                   "covariance_trace": traces[n], "failed": int(r.num_failed)} for n, r in runs.items()},
+            "trace_ratio": ratio}
+
+
 def _solve(args):
     if args.problem not in _PROBLEMS:
         raise _UsageError(f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}")
     if args.solver not in _SOLVERS:
         raise _UsageError(f"unknown solver {args.solver!r}; available: {', '.join(_SOLVERS)}")
+    if args.monte_carlo < 0:
+        raise _UsageError(f"--monte-carlo must be >= 0; got {args.monte_carlo}")
+    if args.monte_carlo and args.problem != "earth-mars":
+        raise _UsageError("--monte-carlo needs thrust errors: earth-mars only")
     for name in ("starts", "steps", "max_steps"):
         _positive(f"--{name.replace('_', '-')}", getattr(args, name))
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -214,11 +251,17 @@ def _solve(args):
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"  {k:<{width}}  {v}")
+    if args.monte_carlo:
+        summary_mc = _monte_carlo(prob, ctrl, best, sim, args)
     inputs = {"problem": args.problem, "control": repr(ctrl), "label": label, "a0": np.asarray(a0),
               "starts": args.starts, "seed": args.seed, "resume": args.resume, "rk4_steps": args.steps, "max_steps": args.max_steps,
               "solver": repr(solver), "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__,
                                                     "python": sys.version.split()[0]}}
-    io.save(out, prob, best, traj, inputs=inputs)
+    summary = io.save(out, prob, best, traj, inputs=inputs)
+    if args.monte_carlo:
+        summary["monte_carlo"] = summary_mc
+        text = json.dumps(summary, indent=2).encode()
+        io.atomic_write(os.path.join(out, "summary.json"), lambda f: f.write(text))
     written = ["summary.json", "arrays.npz"]
     if not args.no_plot:
         written += write_figures(out, prob, ctrl, best, traj, r_target=r_target,

@@ -113,3 +113,15 @@ def test_solve_with_kalman_sqp(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and "KalmanSQP" in summary["inputs"]["solver"]
     assert abs(summary["objective"] - 6.0) < 1e-10 and summary["max_constraint_error"] < 1e-10
+
+
+def test_monte_carlo_after_a_solve(tmp_path):
+    out = tmp_path / "mc"
+    r = run("solve", "earth-mars", "--case", "4", "--solver", "sqp", "--steps", "30", "--no-plot",
+            "--monte-carlo", "300", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    mc = json.loads((out / "summary.json").read_text())["monte_carlo"]
+    assert mc["runs"] == 300 and mc["open loop"]["failed"] == 0 and mc["closed loop"]["failed"] == 0
+    assert mc["trace_ratio"] < 0.1  # the feedback shrinks the terminal dispersion (~0.01 on case 5)
+    bad = run("solve", "min-energy", "--monte-carlo", "10", "--out", str(tmp_path / "x"), tmp_path=tmp_path)
+    assert bad.returncode == 2 and "earth-mars only" in bad.stderr
