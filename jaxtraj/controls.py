@@ -106,8 +106,11 @@ class AbstractControl(eqx.Module):
                 f"`a` must be finite; got non-finite entries at indices {bad.tolist()} "
                 f"(values {arr[bad].tolist()})."
             )
-        self._check_values(arr)
-        knots = np.asarray(self.knots(jnp.asarray(arr)))
+        # concrete values even when called while tracing (e.g. a constant `a` closed over
+        # by a jitted function)
+        with jax.ensure_compile_time_eval():
+            self._check_values(arr)
+            knots = np.asarray(self.knots(jnp.asarray(arr)))
         if not knots[-1] > 0:
             raise ValueError(f"`a`: the final time tf must be > 0 for {name}; got tf = {knots[-1]}.")
         return arr

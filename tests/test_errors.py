@@ -120,3 +120,13 @@ def test_float64_is_enforced():
             jt.simulate(prob, ctrl, a0)
     finally:
         jax.config.update("jax_enable_x64", True)
+
+
+def test_constant_parameters_closed_over_by_jit():
+    """A concrete `a` captured by a jitted function is still validated (and works)."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    xf = jax.jit(lambda: jt.simulate(prob, ctrl, a0, simulator=jt.RK4(10)).xf)()
+    np.testing.assert_allclose(xf, jt.simulate(prob, ctrl, a0, simulator=jt.RK4(10)).xf, rtol=1e-13)
+    bad = a0.at[0].set(jnp.nan)
+    with pytest.raises(ValueError, match="finite"):
+        jax.jit(lambda: jt.simulate(prob, ctrl, bad).xf)()
