@@ -48,6 +48,7 @@ from ._simulate import (  # noqa: E402
 )
 from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
 from ._kalman_sqp import KalmanSQP as KalmanSQP  # noqa: E402
+from ._augmented_lagrangian import AugmentedLagrangian as AugmentedLagrangian  # noqa: E402
 from .feedback import (  # noqa: E402
     ClosedLoopTrajectory as ClosedLoopTrajectory,
     ControlErrors as ControlErrors,

@@ -1,0 +1,679 @@
+"""An augmented-Lagrangian solver (seed 002, eq. 9) with an optax inner minimizer.
+
+The restricted problem is
+
+    minimize G(a)   subject to   E(a) = 0 (terminal),   C(a) <= 0 (path, on the grid),
+                                 a in the parameter box B (control bounds, ordered times).
+
+**Augmented Lagrangian.** The seed's eq. 9, L_A = f - lambda^T h + sum_i mu_i h_i^2 with one
+penalty per constraint, is used for the equalities (written with rho_i = 2 mu_i); the path
+inequalities, one multiplier per grid point and one penalty per path component, enter
+through the Powell-Hestenes-Rockafellar term:
+
+    L_A(a) = G - lambda^T E + sum_i rho_i/2 E_i^2
+                 + sum_j (max(0, nu_j + sigma C_j)^2 - nu_j^2) / (2 sigma).
+
+E and C here are *scaled*: each E_i is divided by the norm of its gradient at a0, each path
+component by its largest gradient norm over the grid at a0 (`constraint_scale`), so that one
+penalty value means the same curvature for every constraint (rates in rad/s and a final time
+in seconds alike). The feasibility tests use the unscaled values.
+
+**Outer iterations.** lambda starts at the least-squares estimate G_a = lambda^T H, nu at 0,
+the penalties at ALGENCAN's 10 max(1, |G|) / max(1, 1/2 |E|^2 + 1/2 |C+|^2) (clipped to
+[1e-8, 1e8]) unless `penalty_init` is given. When an inner minimization ends: lambda <-
+lambda - rho E, nu <- max(0, nu + sigma C) (clipped to `multiplier_max`); after a *solved*
+inner problem, a penalty grows by `penalty_growth` where its infeasibility (|E_i|, resp.
+max_j |max(C_j, -nu_j / sigma)|, which also measures complementarity) did not fall below
+`feasibility_ratio` times its value at the previous outer iteration (ALGENCAN's rule, per
+component as the seed's vector mu suggests; per path *component*, not per grid point: the
+contact point of a touching constraint moves between grid points, which a per-point rule
+reads as stagnation). The inner tolerance starts at `inner_tol_init` and shrinks by
+`inner_tol_shrink` per outer iteration down to `gtol`.
+
+**Inner iterations** (one per `step`), in preconditioned coordinates z = L^T (a - a_k) with
+L L^T = M = `curvature` I + sum rho_i h_i h_i^T + sum_(active j) sigma c_j c_j^T, the
+Gauss-Newton curvature of the penalty terms at the start a_k of the outer iteration (the
+Gauss-Newton approximation of the seed's ref. [2]); without it (`precondition=False`) L-BFGS
+meets a condition number ~ penalty / curvature of G and needs far more steps (measured: 2450
+steps instead of 107 on the constrained attitude problem, 1.5-3x more on Earth-Mars cases 1-5,
+and cases 6-7 fail). `inner="lbfgs"`: one
+iteration of `optax.lbfgs` (`scale_by_lbfgs`, then its zoom line search, with the largest
+step limited so that no parameter moves by more than `max_step`: without that limit the
+zoom search's step doubling on the early, nearly linear subproblems of minimum-time problems
+lands in other basins: Earth-Mars case 5 ended at tf = 5.13, case 6 at 3.3766, case 7 did not
+converge; with it all seven cases reach the SLSQP optima to 1e-8). `inner="adam"`: one
+`optax.adam` update.
+The line search calls `al_value`, a `jax.custom_vjp` scalar function whose forward pass
+integrates once with forward sensitivities (`evaluate_restricted`) and whose gradient is
+assembled from G_a, H and C_a: no reverse mode goes through the integrator. Each step then
+evaluates the projected new point (which also gives the E and C of the history and of the
+outer update), so an L-BFGS step costs 1 + (line-search trials) integrations, an Adam step one.
+L-BFGS memory restarts at each outer iteration (new coordinates), after a rejected step, and
+when a stored pair has no positive curvature (optax does not check).
+
+**Box by projection** (`ParameterBox`). Parameters that are control values (node values of
+`PiecewiseLinear`, end values of `PiecewiseParabolic` arcs, levels of `PiecewiseConstant`,
+coefficients of `SaturatedSpline`, intersected with its own bounds) are kept in
+[problem.control_lower, problem.control_upper]; the slopes of parabolic arcs are free (so a
+parabola may bulge past a bound between its ends). Times: a lone tf is kept >= K
+`min_duration`, free knot times t_1 < ... < t_K are kept at least `min_duration` apart by
+t_k <- max(t_k, t_{k-1} + min_duration) (a cumulative max), and durations are kept >=
+`min_duration`. The start a0 is projected first, and every new iterate. The gradient handed to
+the inner minimizer is the *reduced* gradient (components at a bound whose descent direction
+leaves the box are zeroed), so the search treats such a bound as binding; the convergence
+measures use the same reduced gradient. Controls of other (user) families get no bounds.
+
+**Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
+reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones)
+<= `gtol` (1 + |G|). STALLED: an outer iteration whose inner loop could not decrease L_A at all
+(two rejected steps in a row, none accepted) while feasible. MAX_ITERATIONS: `max_outer` outer
+iterations or `max_steps` steps. NONFINITE: non-finite start. A non-finite or (L-BFGS)
+non-decreasing candidate is rejected.
+
+!!! note "Accuracy floor"
+    The line search compares values of L_A, which round-off resolves to ~1e-16 |L_A|; the
+    reduced gradient cannot be driven much below ~sqrt(eps |L_A| x curvature) that way
+    (measured 5e-8..1e-6 on the library's problems), hence the default `gtol` = 1e-6. The
+    objective is far more accurate than that (its error is quadratic in the gradient's):
+    Earth-Mars case 4 reaches tf to 3e-9 of the SQP optimum.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ._sensitivity import Evaluation, evaluate_restricted
+from ._solution import History, Solution
+from ._solve import AbstractSolver
+from ._status import Status
+from .controls import PiecewiseConstant, PiecewiseLinear, PiecewiseParabolic, SaturatedSpline
+
+# ------------------------------------------------------------------------------------------
+# The parameter box
+# ------------------------------------------------------------------------------------------
+
+
+class ParameterBox(eqx.Module):
+    """Bounds of a parameter vector: `lower <= a <= upper` component-wise (+-inf where free),
+    and, if `knot_indices` is not empty, the free knot times a[knot_indices] = t_1..t_K kept
+    increasing with gaps >= `min_gap`."""
+
+    lower: jax.Array
+    upper: jax.Array
+    knot_indices: tuple[int, ...] = ()
+    min_gap: float = 0.0
+
+    def project(self, a):
+        a = jnp.clip(a, self.lower, self.upper)
+        if self.knot_indices:
+            idx = jnp.asarray(self.knot_indices)
+            t = a[idx]
+            offs = self.min_gap * jnp.arange(1, t.shape[0] + 1, dtype=a.dtype)
+            t = offs + jnp.maximum(0.0, jax.lax.cummax(t - offs))
+            a = a.at[idx].set(t)
+        return a
+
+    def reduce(self, a, g):
+        """The gradient with the components zeroed where `a` sits on (or beyond) a bound and
+        -g points out of the box. For free knot times the same rule acts on the durations
+        h_k = t_k - t_(k-1) >= `min_gap` (gradient d/dh_k = sum_(j >= k) d/dt_j)."""
+        binding = ((a <= self.lower) & (g > 0)) | ((a >= self.upper) & (g < 0))
+        g = jnp.where(binding, 0.0, g)
+        if self.knot_indices:
+            idx = jnp.asarray(self.knot_indices)
+            t = a[idx]
+            h = jnp.diff(t, prepend=jnp.zeros(1, t.dtype))
+            g_h = jnp.cumsum(g[idx][::-1])[::-1]
+            slack = self.min_gap * 1e-6 + 8.0 * jnp.finfo(t.dtype).eps * jnp.abs(t)
+            g_h = jnp.where((h <= self.min_gap + slack) & (g_h > 0), 0.0, g_h)
+            g = g.at[idx].set(g_h - jnp.concatenate([g_h[1:], jnp.zeros(1, g_h.dtype)]))
+        return g
+
+
+def _value_indices(control):
+    """`(indices, channel)` of the parameters that are control values, or None if the family
+    is unknown."""
+    n = control.num_params
+    times = set(control.time_indices)
+    if isinstance(control, (PiecewiseLinear, PiecewiseConstant)):
+        idx = [i for i in range(n) if i not in times]
+        return idx, [0] * len(idx)
+    if isinstance(control, PiecewiseParabolic):
+        stride = 4 if control.free_times else 3
+        idx = [stride * k + j for k in range(control.segments) for j in (0, 2)]
+        return idx, [0] * len(idx)
+    if isinstance(control, SaturatedSpline):
+        start, P = len(control.time_indices), control.segments
+        idx = [start + j * (P + 1) + i for j in range(control.num_controls) for i in range(P + 1)]
+        return idx, [j for j in range(control.num_controls) for _ in range(P + 1)]
+    return None
+
+
+def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
+    """The `ParameterBox` of `control`'s parameters for `problem` (see the module docs).
+    Pure (usable inside jit: the problem's bounds may be traced)."""
+    n = control.num_params
+    lower = jnp.full(n, -jnp.inf)
+    upper = jnp.full(n, jnp.inf)
+    values = _value_indices(control)
+    if values is None:
+        return ParameterBox(lower, upper)
+    idx, channel = np.asarray(values[0], int), np.asarray(values[1], int)
+    lo_u = jnp.full(problem.num_controls, -jnp.inf) if problem.control_lower is None else problem.control_lower
+    hi_u = jnp.full(problem.num_controls, jnp.inf) if problem.control_upper is None else problem.control_upper
+    if isinstance(control, SaturatedSpline):
+        lo_u, hi_u = jnp.maximum(lo_u, control.lower), jnp.minimum(hi_u, control.upper)
+    if idx.size:
+        lower = lower.at[idx].set(lo_u[channel])
+        upper = upper.at[idx].set(hi_u[channel])
+    times = list(control.time_indices)
+    K = control.num_segments
+    if isinstance(control, SaturatedSpline) and control.free_durations:
+        return ParameterBox(lower.at[np.asarray(times)].set(min_duration), upper)
+    if len(times) == 1:  # tf alone, equally spaced knots
+        return ParameterBox(lower.at[times[0]].set(K * min_duration), upper)
+    # free knot times: a[times] = t_1, ..., t_K (every family of jaxtraj.controls)
+    return ParameterBox(lower, upper, tuple(times), float(min_duration))
+
+
+# ------------------------------------------------------------------------------------------
+# The augmented Lagrangian
+# ------------------------------------------------------------------------------------------
+
+
+class Multipliers(eqx.Module):
+    """Multipliers and penalties of the scaled constraints: `lam`, `rho` (l,) for E = 0;
+    `nu` (N, q) for the path constraints C <= 0 on the grid (shape (0, 0) without path
+    constraints) and one penalty `sigma` (q,) per path component; `e_scale` (l,), `c_scale`
+    (q,): the constraint scaling (module docs)."""
+
+    lam: jax.Array
+    rho: jax.Array
+    nu: jax.Array
+    sigma: jax.Array
+    e_scale: jax.Array
+    c_scale: jax.Array
+
+
+def _path_arrays(ev: Evaluation):
+    """C (N, q) and C_a (N, q, np), empty when the problem has no path constraints."""
+    if ev.C is None:
+        p = ev.G_a.shape[0]
+        return jnp.zeros((0, 0), ev.G_a.dtype), jnp.zeros((0, 0, p), ev.G_a.dtype)
+    return ev.C, ev.C_a
+
+
+def augmented_lagrangian(ev: Evaluation, m: Multipliers):
+    """`(L_A, dL_A/da)` at an evaluation (module docs), assembled from G_a, H and C_a, with the
+    scaled constraints e_scale E and c_scale C."""
+    C, C_a = _path_arrays(ev)
+    E, H = m.e_scale * ev.E, m.e_scale[:, None] * ev.H
+    value = ev.G - m.lam @ E + 0.5 * jnp.sum(m.rho * E**2)
+    grad = ev.G_a + (m.rho * E - m.lam) @ H
+    s = jnp.maximum(0.0, m.nu + (m.sigma * m.c_scale)[None] * C)
+    value = value + jnp.sum((s**2 - m.nu**2) / (2.0 * m.sigma[None]))
+    grad = grad + jnp.einsum("nq,nqp->p", s * m.c_scale[None], C_a)
+    return value, grad
+
+
+def constraint_scale(rows, floor=1e-3):
+    """1 / |row| for each constraint gradient (last axis), with the norms floored at `floor`
+    times the largest (and at 1e-300), so that every scaled constraint has a unit gradient
+    at the start except those (nearly) insensitive to the parameters there."""
+    norms = jnp.linalg.norm(rows, axis=-1)
+    top = jnp.max(norms, initial=0.0)
+    scale = 1.0 / jnp.maximum(norms, jnp.maximum(floor * top, 1e-300))
+    return jnp.where(jnp.isfinite(scale), scale, 1.0)
+
+
+class Metric(eqx.Module):
+    """Preconditioned coordinates z = L^T (a - center), M = L L^T (module docs): the inner
+    minimizer works on z, where the penalty terms' Gauss-Newton curvature is the identity."""
+
+    center: jax.Array
+    L: jax.Array  # lower Cholesky factor of M
+
+    def to_z(self, a):
+        return self.L.T @ (a - self.center)
+
+    def to_a(self, z):
+        return self.center + jax.scipy.linalg.solve_triangular(self.L.T, z, lower=False)
+
+    def grad_z(self, g):
+        """d/dz of a function whose gradient in a is g."""
+        return jax.scipy.linalg.solve_triangular(self.L, g, lower=True)
+
+
+def gauss_newton_metric(ev: Evaluation, m: Multipliers, a, grad, box: ParameterBox, curvature):
+    """`Metric` at `a` with M = curvature I + sum_i rho_i h_i h_i^T + sum_(active j) sigma c_j
+    c_j^T (h_i, c_j: gradients of the scaled constraints; a path point is active where
+    nu + sigma C > 0); rows and columns of bound-binding parameters are decoupled."""
+    C, C_a = _path_arrays(ev)
+    Hs = m.e_scale[:, None] * ev.H
+    Cs_a = m.c_scale[None, :, None] * C_a
+    active = (m.nu + (m.sigma * m.c_scale)[None] * C) > 0
+    w = jnp.where(active, m.sigma[None], 0.0)
+    gn = (Hs.T * m.rho[None, :]) @ Hs + jnp.einsum("nqp,nq,nqr->pr", Cs_a, w, Cs_a)
+    n = a.shape[0]
+    free = ~(((a <= box.lower) & (grad > 0)) | ((a >= box.upper) & (grad < 0)))  # not binding
+    gn = jnp.where(free[:, None] & free[None, :], gn, 0.0)
+    M = gn + curvature * jnp.eye(n, dtype=a.dtype)
+    L = jnp.linalg.cholesky(0.5 * (M + M.T))
+    L = jnp.where(jnp.all(jnp.isfinite(L)), L, jnp.sqrt(curvature) * jnp.eye(n, dtype=a.dtype))
+    return Metric(center=a, L=L)
+
+
+def al_value(problem, control, simulator, box: ParameterBox, m: Multipliers, metric: Metric, method="forward"):
+    """The scalar function z -> L_A(P(metric.to_a(z))) (P = `box.project`) as a
+    `jax.custom_vjp`: its forward pass is one integration with forward sensitivities, its
+    gradient is the reduced gradient (`ParameterBox.reduce`) assembled from the sensitivities
+    (G_a, H, C_a), mapped to z. For optax's line search (`jax.value_and_grad`); non-finite
+    evaluations give +inf."""
+    dynamic, static = eqx.partition((problem, control, simulator, box, m, metric), eqx.is_array)
+
+    def evaluate(z, dyn):
+        problem, control, simulator, box, m, metric = eqx.combine(dyn, static)
+        x = metric.to_a(z)
+        ev = evaluate_restricted(problem, control, box.project(x), simulator, method)
+        value, grad = augmented_lagrangian(ev, m)
+        ok = (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
+        return jnp.where(ok, value, jnp.inf), jnp.where(ok, metric.grad_z(box.reduce(x, grad)), 0.0)
+
+    @jax.custom_vjp
+    def f(z, dyn):
+        return evaluate(z, dyn)[0]
+
+    def fwd(z, dyn):
+        value, grad = evaluate(z, dyn)
+        return value, (grad, dyn)
+
+    def bwd(res, ct):
+        grad, dyn = res
+        return ct * grad, jax.tree.map(_zero_cotangent, dyn)
+
+    f.defvjp(fwd, bwd)
+    return lambda z: f(z, dynamic)
+
+
+def _zero_cotangent(v):
+    if jnp.issubdtype(v.dtype, jnp.inexact):
+        return jnp.zeros_like(v)
+    return np.zeros(v.shape, dtype=jax.dtypes.float0)
+
+
+# ------------------------------------------------------------------------------------------
+# The solver
+# ------------------------------------------------------------------------------------------
+
+
+class _State(eqx.Module):
+    a: jax.Array
+    ev: Evaluation
+    value: jax.Array  # L_A(a) with the current multipliers
+    grad: jax.Array  # dL_A/da (full, not reduced)
+    m: Multipliers
+    metric: Metric
+    opt_state: optax.OptState
+    omega: jax.Array  # inner tolerance in force
+    prev_E: jax.Array  # |scaled E| at the previous outer update (inf at first)
+    prev_V: jax.Array  # max |scaled V| per path component at the previous outer update
+    inner_count: jax.Array
+    inner_accepted: jax.Array  # accepted steps in this outer iteration
+    rejected: jax.Array  # consecutive rejected steps
+    num_outer: jax.Array
+    num_iterations: jax.Array
+    num_integrations: jax.Array
+    num_steps: jax.Array
+    done: jax.Array
+    status: Status
+    history: History
+
+
+class AugmentedLagrangian(AbstractSolver):
+    """Augmented-Lagrangian method with an optax inner minimizer (see the module docs).
+
+    Fields:
+
+    - `inner`: `"lbfgs"` (`optax.lbfgs` with its zoom line search) or `"adam"`.
+    - `ctol`: feasibility tolerance on max |E_i| and on the path constraints (1e-9).
+    - `gtol`: final tolerance on the reduced gradient of the Lagrangian, relative to 1 + |G|.
+    - `inner_tol_init`, `inner_tol_shrink`: the first inner tolerance (relative like `gtol`)
+      and its factor per outer iteration (never below `gtol`).
+    - `max_inner`: inner steps before an outer update is forced.
+    - `max_outer`: outer iterations before MAX_ITERATIONS.
+    - `penalty_init`: first penalty (None: ALGENCAN's scaling rule).
+    - `penalty_growth`, `feasibility_ratio`: a penalty is multiplied by `penalty_growth`
+      when its constraint's infeasibility did not fall below `feasibility_ratio` times the
+      previous one.
+    - `penalty_max`, `multiplier_max`: caps.
+    - `learning_rate`: Adam's step size (parameter units; `inner="adam"` only).
+    - `memory_size`, `max_linesearch_steps`: of L-BFGS and its zoom line search.
+    - `min_duration`: smallest segment duration kept by the projection.
+    - `precondition`: inner minimization in the Gauss-Newton preconditioned coordinates.
+    - `curvature`: the curvature assumed for the Lagrangian in the preconditioner (parameter
+      units; the library's problems have O(1) parameters).
+    - `max_step`: largest change of any parameter in one L-BFGS step (parameter units).
+    - `method`: sensitivity method (`"forward"`; `"unit"`/`"fd"` for problems without path
+      constraints).
+
+    History: `rho` holds the length |delta a| of the step taken, `phase` the outer iteration
+    index, `constraint_tolerance` `ctol`. `iterations` counts accepted inner steps.
+    """
+
+    inner: str = "lbfgs"
+    ctol: float = 1e-9
+    gtol: float = 1e-6
+    inner_tol_init: float = 1e-2
+    inner_tol_shrink: float = 0.1
+    max_inner: int = 200
+    max_outer: int = 40
+    penalty_init: float | None = None
+    penalty_growth: float = 10.0
+    feasibility_ratio: float = 0.25
+    penalty_max: float = 1e12
+    multiplier_max: float = 1e12
+    learning_rate: float = 1e-2
+    memory_size: int = 10
+    max_linesearch_steps: int = 20
+    min_duration: float = 1e-6
+    precondition: bool = True
+    max_step: float = 1.0
+    curvature: float = 1.0
+    method: str = "forward"
+
+    def __check_init__(self):
+        if self.inner not in ("lbfgs", "adam"):
+            raise ValueError(f"AugmentedLagrangian: `inner` must be 'lbfgs' or 'adam'; got {self.inner!r}.")
+        if self.method not in ("forward", "unit", "fd"):
+            raise ValueError(
+                f"AugmentedLagrangian: `method` must be 'forward', 'unit' or 'fd'; got {self.method!r}."
+            )
+
+        def is_int(v, low):
+            return isinstance(v, int) and not isinstance(v, bool) and v >= low
+
+        checks = {
+            "ctol": self.ctol > 0,
+            "gtol": self.gtol > 0,
+            "inner_tol_init": self.inner_tol_init > 0,
+            "inner_tol_shrink": 0 < self.inner_tol_shrink <= 1,
+            "max_inner": is_int(self.max_inner, 1),
+            "max_outer": is_int(self.max_outer, 1),
+            "penalty_init": self.penalty_init is None or self.penalty_init > 0,
+            "penalty_growth": self.penalty_growth > 1,
+            "feasibility_ratio": 0 < self.feasibility_ratio < 1,
+            "penalty_max": self.penalty_max > 0,
+            "multiplier_max": self.multiplier_max > 0,
+            "learning_rate": self.learning_rate > 0,
+            "memory_size": is_int(self.memory_size, 1),
+            "max_linesearch_steps": is_int(self.max_linesearch_steps, 1),
+            "min_duration": self.min_duration > 0,
+            "precondition": isinstance(self.precondition, bool),
+            "curvature": self.curvature > 0,
+            "max_step": self.max_step > 0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"AugmentedLagrangian: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+
+    # ------------------------------------------------------------------ pieces
+
+    def _optimizer(self):
+        """Adam, or the L-BFGS direction of `optax.lbfgs` (its first two links; the third, its
+        zoom line search, is `_linesearch`, applied separately so that its largest step can
+        depend on the direction)."""
+        if self.inner == "adam":
+            return optax.adam(self.learning_rate)
+        return optax.chain(optax.scale_by_lbfgs(memory_size=self.memory_size), optax.scale(-1.0))
+
+    def _linesearch(self, max_learning_rate=None):
+        return optax.scale_by_zoom_linesearch(
+            max_linesearch_steps=self.max_linesearch_steps,
+            max_learning_rate=max_learning_rate,
+            initial_guess_strategy="one",
+        )
+
+    def _init_opt(self, z):
+        if self.inner == "adam":
+            return self._optimizer().init(z)
+        return (self._optimizer().init(z), self._linesearch().init(z))
+
+    def _evaluate(self, problem, control, a, simulator):
+        return evaluate_restricted(problem, control, a, simulator, self.method)
+
+    def _initial_multipliers(self, ev: Evaluation):
+        C, C_a = _path_arrays(ev)
+        e_scale = constraint_scale(ev.H)
+        # one scale per path component: its largest gradient over the grid
+        c_scale = constraint_scale(jnp.max(jnp.linalg.norm(C_a, axis=-1), axis=0, initial=0.0)[:, None])
+        E, Cs = e_scale * ev.E, c_scale[None] * C
+        if self.penalty_init is None:
+            infeas = 0.5 * (E @ E) + 0.5 * jnp.sum(jnp.maximum(Cs, 0.0) ** 2)
+            rho0 = jnp.clip(10.0 * jnp.maximum(1.0, jnp.abs(ev.G)) / jnp.maximum(1.0, infeas), 1e-8, 1e8)
+            rho0 = jnp.where(jnp.isfinite(rho0), rho0, 1.0)
+        else:
+            rho0 = jnp.asarray(self.penalty_init, ev.G.dtype)
+        # first-order estimate: G_a = lambda^T (e_scale H) in the least-squares sense
+        lam0 = jnp.linalg.lstsq((e_scale[:, None] * ev.H).T, ev.G_a)[0]
+        lam0 = jnp.clip(jnp.where(jnp.all(jnp.isfinite(lam0)), lam0, 0.0), -self.multiplier_max, self.multiplier_max)
+        return Multipliers(
+            lam=lam0,
+            rho=jnp.full_like(ev.E, rho0),
+            nu=jnp.zeros_like(C),
+            sigma=jnp.full(C.shape[1], rho0, C.dtype),
+            e_scale=e_scale,
+            c_scale=c_scale,
+        )
+
+    def _scale(self, ev):
+        return 1.0 + jnp.abs(ev.G)
+
+    # ------------------------------------------------------------------ state machine
+
+    def init(self, problem, control, a0, simulator, max_steps):
+        box = parameter_box(problem, control, self.min_duration)
+        a = box.project(a0)
+        ev = self._evaluate(problem, control, a, simulator)
+        m = self._initial_multipliers(ev)
+        value, grad = augmented_lagrangian(ev, m)
+        ok = (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(a))
+        metric = self._metric(ev, m, a, grad, box)
+        f = jnp.float64
+        nan = jnp.full(max_steps, jnp.nan, f)
+        hist = History(
+            objective=nan,
+            max_constraint_error=nan,
+            rho=nan,
+            phase=jnp.full(max_steps, -1, jnp.int32),
+            accepted=jnp.zeros(max_steps, bool),
+            constraint_tolerance=nan,
+        )
+        C, _ = _path_arrays(ev)
+        return _State(
+            a=a,
+            ev=ev,
+            value=value,
+            grad=grad,
+            m=m,
+            metric=metric,
+            opt_state=self._init_opt(jnp.zeros_like(a)),
+            omega=jnp.asarray(max(self.inner_tol_init, self.gtol), f),
+            prev_E=jnp.full_like(ev.E, jnp.inf),
+            prev_V=jnp.full(C.shape[1], jnp.inf, C.dtype),
+            inner_count=jnp.array(0, jnp.int32),
+            inner_accepted=jnp.array(0, jnp.int32),
+            rejected=jnp.array(0, jnp.int32),
+            num_outer=jnp.array(0, jnp.int32),
+            num_iterations=jnp.array(0, jnp.int32),
+            num_integrations=jnp.array(1, jnp.int32),
+            num_steps=jnp.array(0, jnp.int32),
+            done=~ok,
+            status=Status.where(ok, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)),
+            history=hist,
+        )
+
+    def _metric(self, ev, m, a, grad, box):
+        if self.precondition:
+            return gauss_newton_metric(ev, m, a, grad, box, self.curvature)
+        return Metric(center=a, L=jnp.eye(a.shape[0], dtype=a.dtype))
+
+    def step(self, problem, control, simulator, state: _State):
+        box = parameter_box(problem, control, self.min_duration)
+        opt = self._optimizer()
+        a, m, metric = state.a, state.m, state.metric
+        z = metric.to_z(a)
+        g_z = metric.grad_z(box.reduce(a, state.grad))
+
+        # ---- one inner iteration (optax, in the preconditioned z), then one evaluation at
+        # the projected new point
+        if self.inner == "lbfgs":
+            fn = al_value(problem, control, simulator, box, m, metric, self.method)
+            # optax's L-BFGS stores the pair (z - z_prev, g - g_prev) without a curvature
+            # check; the projection can make it non-positive: restart the memory then.
+            lb = state.opt_state[0][0]
+            s_, y_ = z - lb.params, g_z - lb.updates
+            bad_pair = (lb.count > 0) & ~(s_ @ y_ > 1e-12 * jnp.linalg.norm(s_) * jnp.linalg.norm(y_))
+            prior = jax.tree.map(lambda n, o: jnp.where(bad_pair, n, o), self._init_opt(z), state.opt_state)
+            direction, dir_state = opt.update(g_z, prior[0], z)
+            # the line search's largest step keeps every parameter's change <= max_step
+            reach = jnp.max(jnp.abs(metric.to_a(direction) - metric.center))
+            cap = self.max_step / jnp.where(reach > 0, reach, 1.0)
+            updates, ls_state = self._linesearch(cap).update(
+                direction, prior[1], z, value=state.value, grad=g_z, value_fn=fn
+            )
+            opt_state = (dir_state, ls_state)
+            trials = ls_state.info.num_linesearch_steps.astype(jnp.int32)
+        else:
+            updates, opt_state = opt.update(g_z, state.opt_state, z)
+            trials = jnp.array(0, jnp.int32)
+        cand_a = box.project(metric.to_a(z + updates))
+        cand = self._evaluate(problem, control, cand_a, simulator)
+        cand_value, cand_grad = augmented_lagrangian(cand, m)
+        finite = (
+            (cand.status == Status.SUCCESS)
+            & jnp.isfinite(cand_value)
+            & jnp.all(jnp.isfinite(cand_grad))
+            & jnp.all(jnp.isfinite(cand_a))
+        )
+        if self.inner == "lbfgs":
+            slack = 10.0 * jnp.finfo(cand_value.dtype).eps * (1.0 + jnp.abs(state.value))
+            accept = finite & (cand_value <= state.value + slack)
+        else:
+            accept = finite
+        pick = lambda new, old: jax.tree.map(lambda n, o: jnp.where(accept, n, o), new, old)  # noqa: E731
+        new_a = pick(cand_a, a)
+        ev = pick(cand, state.ev)
+        value, grad = pick(cand_value, state.value), pick(cand_grad, state.grad)
+        opt_state = jax.tree.map(lambda n, o: jnp.where(accept, n, o), opt_state, self._init_opt(z))
+        rejected = jnp.where(accept, 0, state.rejected + 1)
+        inner_count = state.inner_count + 1
+        inner_accepted = state.inner_accepted + accept.astype(jnp.int32)
+
+        # ---- inner termination, and the outer update computed for every step (branch-free)
+        scale = self._scale(ev)
+        pg = jnp.linalg.norm(box.reduce(new_a, grad))
+        stuck = rejected >= 2
+        solved = pg <= state.omega * scale
+        inner_done = solved | (inner_count >= self.max_inner) | stuck
+
+        C, _ = _path_arrays(ev)
+        Es, Cs = m.e_scale * ev.E, m.c_scale[None] * C  # scaled: the penalty rule and the updates
+        V = jnp.maximum(C, -m.nu / (m.sigma * m.c_scale)[None])  # unscaled: the tests
+        Vs = jnp.max(jnp.abs(m.c_scale[None] * V), axis=0, initial=0.0)  # per path component
+        absV = jnp.max(jnp.abs(V), axis=0, initial=0.0)
+        maxE = jnp.max(jnp.abs(ev.E), initial=0.0)
+        maxV = jnp.max(V, initial=-jnp.inf)
+        feasible = (maxE <= self.ctol) & (maxV <= self.ctol)
+        converged = inner_done & feasible & (pg <= self.gtol * scale)
+        stalled = inner_done & stuck & (inner_accepted == 0) & feasible & ~converged
+
+        cap = self.multiplier_max
+        lam1 = jnp.clip(m.lam - m.rho * Es, -cap, cap)
+        nu1 = jnp.clip(jnp.maximum(0.0, m.nu + m.sigma[None] * Cs), 0.0, cap)
+        # Penalties grow only after a solved inner problem (an unfinished one says nothing
+        # about the penalty being too small).
+        grow_E = solved & (jnp.abs(Es) > self.feasibility_ratio * state.prev_E) & (jnp.abs(ev.E) > self.ctol)
+        grow_V = solved & (Vs > self.feasibility_ratio * state.prev_V) & (absV > self.ctol)
+        rho1 = jnp.where(grow_E, jnp.minimum(self.penalty_growth * m.rho, self.penalty_max), m.rho)
+        sigma1 = jnp.where(grow_V, jnp.minimum(self.penalty_growth * m.sigma, self.penalty_max), m.sigma)
+        m_outer = Multipliers(lam=lam1, rho=rho1, nu=nu1, sigma=sigma1, e_scale=m.e_scale, c_scale=m.c_scale)
+        value_outer, grad_outer = augmented_lagrangian(ev, m_outer)  # no integration
+        metric_outer = self._metric(ev, m_outer, new_a, grad_outer, box)
+        outer = inner_done & ~converged & ~stalled
+        sel = lambda new, old: jax.tree.map(lambda n, o: jnp.where(outer, n, o), new, old)  # noqa: E731
+        m_new, metric_new = sel(m_outer, m), sel(metric_outer, metric)
+        value, grad = sel(value_outer, value), sel(grad_outer, grad)
+        opt_state = sel(self._init_opt(z), opt_state)  # new coordinates: a fresh memory
+        num_outer = state.num_outer + outer.astype(jnp.int32)
+        done = converged | stalled | (num_outer >= self.max_outer)
+
+        i = state.num_steps
+        h = state.history
+        history = History(
+            objective=h.objective.at[i].set(ev.G),
+            max_constraint_error=h.max_constraint_error.at[i].set(maxE),
+            rho=h.rho.at[i].set(jnp.linalg.norm(new_a - a)),
+            phase=h.phase.at[i].set(state.num_outer),
+            accepted=h.accepted.at[i].set(accept),
+            constraint_tolerance=h.constraint_tolerance.at[i].set(self.ctol),
+        )
+        return _State(
+            a=new_a,
+            ev=ev,
+            value=value,
+            grad=grad,
+            m=m_new,
+            metric=metric_new,
+            opt_state=opt_state,
+            omega=jnp.where(outer, jnp.maximum(state.omega * self.inner_tol_shrink, self.gtol), state.omega),
+            prev_E=jnp.where(outer, jnp.abs(Es), state.prev_E),
+            prev_V=jnp.where(outer, Vs, state.prev_V),
+            inner_count=jnp.where(inner_done, 0, inner_count),
+            inner_accepted=jnp.where(inner_done, 0, inner_accepted),
+            rejected=jnp.where(inner_done, 0, rejected),
+            num_outer=num_outer,
+            num_iterations=state.num_iterations + accept.astype(jnp.int32),
+            num_integrations=state.num_integrations + 1 + trials,
+            num_steps=i + 1,
+            done=done,
+            status=Status.where(
+                converged, Status.SUCCESS, Status.where(stalled, Status.STALLED, Status.MAX_ITERATIONS)
+            ),
+            history=history,
+        )
+
+    def progress(self, state: _State):
+        C, _ = _path_arrays(state.ev)
+        return {
+            "outer": state.num_outer,
+            "objective": state.ev.G,
+            "max|E|": jnp.max(jnp.abs(state.ev.E), initial=0.0),
+            "max C": jnp.max(C, initial=-jnp.inf),
+            "L_A": state.value,
+            "max rho": jnp.max(state.m.rho, initial=0.0),
+        }
+
+    def postprocess(self, problem, control, simulator, state: _State) -> Solution:
+        box = parameter_box(problem, control, self.min_duration)
+        ev = state.ev
+        if ev.C is None:
+            path = {}
+        else:
+            worst = jnp.max(ev.C, axis=1)
+            path = {"max_path_constraint": jnp.max(worst), "max_path_time": ev.path_t[jnp.argmax(worst)]}
+        return Solution(
+            params=state.a,
+            tf=ev.tf,
+            objective=ev.G,
+            constraints=ev.E,
+            max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
+            projected_gradient=jnp.linalg.norm(box.reduce(state.a, state.grad)),
+            iterations=state.num_iterations,
+            integrations=state.num_integrations,
+            steps=state.num_steps,
+            status=Status.where(state.done, state.status, Status.MAX_ITERATIONS),
+            history=state.history,
+            **path,
+        )
