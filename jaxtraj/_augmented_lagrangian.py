@@ -481,15 +481,7 @@ class AugmentedLagrangian(AbstractSolver):
         ok = (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(a))
         metric = self._metric(ev, m, a, grad, box)
         f = jnp.float64
-        nan = jnp.full(max_steps, jnp.nan, f)
-        hist = History(
-            objective=nan,
-            max_constraint_error=nan,
-            rho=nan,
-            phase=jnp.full(max_steps, -1, jnp.int32),
-            accepted=jnp.zeros(max_steps, bool),
-            constraint_tolerance=nan,
-        )
+        hist = History.empty(max_steps)
         C, _ = _path_arrays(ev)
         return _State(
             a=a,
@@ -610,14 +602,14 @@ class AugmentedLagrangian(AbstractSolver):
         done = converged | stalled | (num_outer >= self.max_outer)
 
         i = state.num_steps
-        h = state.history
-        history = History(
-            objective=h.objective.at[i].set(ev.G),
-            max_constraint_error=h.max_constraint_error.at[i].set(maxE),
-            rho=h.rho.at[i].set(jnp.linalg.norm(new_a - a)),
-            phase=h.phase.at[i].set(state.num_outer),
-            accepted=h.accepted.at[i].set(accept),
-            constraint_tolerance=h.constraint_tolerance.at[i].set(self.ctol),
+        history = state.history.record(
+            i,
+            objective=ev.G,
+            max_constraint_error=maxE,
+            rho=jnp.linalg.norm(new_a - a),
+            phase=state.num_outer,
+            accepted=accept,
+            constraint_tolerance=self.ctol,
         )
         return _State(
             a=new_a,

@@ -262,15 +262,7 @@ class KalmanSearch(AbstractSolver):
             )
         ev = evaluate_restricted(problem, control, a0, simulator, self.method)
         f = jnp.float64
-        nan = jnp.full(max_steps, jnp.nan, f)
-        hist = History(
-            objective=nan,
-            max_constraint_error=nan,
-            rho=nan,
-            phase=jnp.full(max_steps, -1, jnp.int32),
-            accepted=jnp.zeros(max_steps, bool),
-            constraint_tolerance=nan,
-        )
+        hist = History.empty(max_steps)
         ok0 = ev.status == Status.SUCCESS
         e_a0 = jnp.asarray(self.e_a_start, f)
         return _State(
@@ -380,14 +372,14 @@ class KalmanSearch(AbstractSolver):
             Status.where(stalled, Status.STALLED, Status.where(stationary_fail, Status.CONSTRAINT_STATIONARY, Status.SUCCESS)),
         )
         i = state.num_steps
-        h = state.history
-        history = History(
-            objective=h.objective.at[i].set(new_ev.G),
-            max_constraint_error=h.max_constraint_error.at[i].set(maxE),
-            rho=h.rho.at[i].set(rho),
-            phase=h.phase.at[i].set(phase),
-            accepted=h.accepted.at[i].set(accept),
-            constraint_tolerance=h.constraint_tolerance.at[i].set(e_a),
+        history = state.history.record(
+            i,
+            objective=new_ev.G,
+            max_constraint_error=maxE,
+            rho=rho,
+            phase=phase,
+            accepted=accept,
+            constraint_tolerance=e_a,
         )
         return _State(
             a=new_a,

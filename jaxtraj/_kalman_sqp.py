@@ -304,15 +304,7 @@ class KalmanSQP(AbstractSolver):
         lam = _multipliers(ev0.G_a, ev0.H)
         ev, B = self._hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
-        nan = jnp.full(max_steps, jnp.nan, f)
-        hist = History(
-            objective=nan,
-            max_constraint_error=nan,
-            rho=nan,
-            phase=jnp.full(max_steps, -1, jnp.int32),
-            accepted=jnp.zeros(max_steps, bool),
-            constraint_tolerance=nan,
-        )
+        hist = History.empty(max_steps)
         ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
         zero = jnp.zeros_like(a0)
         return _State(
@@ -409,14 +401,14 @@ class KalmanSQP(AbstractSolver):
         done = converged | stalled
 
         i = state.num_steps
-        h = state.history
-        history = History(
-            objective=h.objective.at[i].set(new_ev.G),
-            max_constraint_error=h.max_constraint_error.at[i].set(maxE),
-            rho=h.rho.at[i].set(alpha),
-            phase=h.phase.at[i].set(jnp.where(fresh, 1, 2).astype(jnp.int32)),
-            accepted=h.accepted.at[i].set(accept),
-            constraint_tolerance=h.constraint_tolerance.at[i].set(self.ctol),
+        history = state.history.record(
+            i,
+            objective=new_ev.G,
+            max_constraint_error=maxE,
+            rho=alpha,
+            phase=jnp.where(fresh, 1, 2).astype(jnp.int32),
+            accepted=accept,
+            constraint_tolerance=self.ctol,
         )
         return _State(
             a=new_a,

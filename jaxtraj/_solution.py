@@ -2,6 +2,7 @@
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 
 from ._status import Status
 
@@ -16,6 +17,23 @@ class History(eqx.Module):
     phase: jax.Array  # 0 = constraint capture, 1 = minimum search, -1 = unused
     accepted: jax.Array  # whether the candidate was accepted
     constraint_tolerance: jax.Array  # e_a in force
+
+    @classmethod
+    def empty(cls, max_steps: int) -> "History":
+        """Unused records (NaN / -1 / False) for `max_steps` steps."""
+        nan = jnp.full(max_steps, jnp.nan, jnp.float64)
+        return cls(
+            objective=nan,
+            max_constraint_error=nan,
+            rho=nan,
+            phase=jnp.full(max_steps, -1, jnp.int32),
+            accepted=jnp.zeros(max_steps, bool),
+            constraint_tolerance=nan,
+        )
+
+    def record(self, i, **values) -> "History":
+        """A copy with entry `i` of every field set from `values` (one keyword per field)."""
+        return History(**{k: getattr(self, k).at[i].set(v) for k, v in values.items()})
 
 
 class Solution(eqx.Module):
