@@ -19,6 +19,7 @@ Three independent ways to get dx(tf)/da:
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from ._problem import Problem
@@ -44,20 +45,65 @@ def forward_jacobian(problem, control, a, simulator):
     x_a <- dx1/dx x_a + dx1/dtheta_k theta_k_a with theta_k = row k of `segment_data` and
     theta_a = dtheta/da computed once. Equal to `jax.jacfwd` of the whole simulation to
     round-off (tested); see `AbstractSimulator.integrate_linearized` and
-    benchmarks/RESULTS.md for why it is written this way."""
+    benchmarks/RESULTS.md for why it is written this way.
+
+    When `segment_data` is affine in a (every control in `jt.controls`), theta_k only moves in
+    the fixed column space of theta_k_a = U_k C_k, so each step is differentiated along the r
+    columns of U_k instead of all of theta_k: on Earth-Mars cases 4 and 5 (rows [u_k, u_k+1,
+    t_k, h_k] with t_k, h_k both proportional to tf) that is n + 3 tangents instead of n + 4."""
     data = segment_data(control, a)
     data_a = jax.jacfwd(segment_data, argnums=1)(control, a)  # (K, m + 2, np)
     field = rescaled_field(problem, control)
     x0 = problem.x0.astype(a.dtype)
+    basis = _affine_segment_basis(control, a)
+    if basis is None:
+        segments = (data, data_a)
+
+        def linearized(x, x_a, theta, theta_a):
+            return simulator.integrate_linearized(field, theta, theta_a, x, x_a)
+    else:
+        segments = (data, basis, jnp.einsum("kir,kip->krp", basis, data_a))
+        w0 = jnp.zeros(basis.shape[-1], a.dtype)
+
+        def linearized(x, x_a, theta, u, c):
+            def reduced(w, tau, y):  # theta + u @ w, as a multiply-sum (see `_chain`)
+                return field(theta + jnp.sum(u * w[None, :], axis=1), tau, y)
+
+            return simulator.integrate_linearized(reduced, w0, c, x, x_a)
 
     def body(carry, segment):
-        x, x_a = carry
-        x1, x1_a, ok = simulator.integrate_linearized(field, *segment, x, x_a)
+        x1, x1_a, ok = linearized(*carry, *segment)
         return (x1, x1_a), ok
 
     init = (x0, jnp.zeros((x0.shape[0], a.shape[0]), a.dtype))
-    (xf, jac), oks = lax.scan(body, init, (data, data_a))
+    (xf, jac), oks = lax.scan(body, init, segments)
     return xf, jac, simulation_status(jnp.all(oks), xf, jac)
+
+
+def _affine_segment_basis(control, a):
+    """Orthonormal bases U_k (K, m + 2, r) of the column spaces of dtheta_k/da when
+    `segment_data` is affine in a, else None. Decided at trace time from the Jacobian at two
+    random points (an affine map has the same Jacobian everywhere); r is the largest rank over
+    the segments, smaller ranks padded with zero columns."""
+    try:
+        with jax.ensure_compile_time_eval():
+            rng = np.random.default_rng(0)
+            jacs = [
+                np.asarray(jax.jacfwd(segment_data, argnums=1)(control, jnp.asarray(rng.uniform(0.5, 2.0, a.shape))))
+                for _ in range(2)
+            ]
+    except jax.errors.JAXTypeError:  # the control itself holds traced arrays
+        return None
+    if not (np.all(np.isfinite(jacs[0])) and np.allclose(jacs[0], jacs[1], rtol=1e-12, atol=1e-12)):
+        return None
+    bases = []
+    for jk in jacs[0]:
+        u, s, _ = np.linalg.svd(jk, full_matrices=False)
+        bases.append(u[:, : int(np.sum(s > 1e-12 * max(s[0], 1e-300)))])
+    r = max(b.shape[1] for b in bases)
+    if r >= jacs[0].shape[1]:
+        return None
+    return jnp.asarray(np.stack([np.pad(b, ((0, 0), (0, r - b.shape[1]))) for b in bases]), a.dtype)
 
 
 def unit_jacobian(problem, control, a, simulator):

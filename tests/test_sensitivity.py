@@ -8,6 +8,7 @@ import pytest
 from helpers import ALL_CASES, counting_problem, family_examples, rel_err
 
 import jaxtraj as jt
+from jaxtraj._sensitivity import _affine_segment_basis
 
 # The unit-solution method differentiates the ODE, forward mode the RK4 map; they differ by
 # the O(h^4) derivative of the step with respect to the knots (16x smaller per halving of h,
@@ -112,10 +113,13 @@ def test_no_recompilation_when_values_change():
     assert counter["traces"] == traced  # new values, same compiled code
 
 
-def test_forward_equals_naive_jacfwd_of_the_simulation():
+@pytest.mark.parametrize("case", [1, 5])
+def test_forward_equals_naive_jacfwd_of_the_simulation(case):
     """The "forward" path is jacfwd through `final_state`; check it against jacfwd of the
-    dense `simulate` (a different code path through the same integrator)."""
-    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(1)
+    dense `simulate` (a different code path through the same integrator). Case 5's control is
+    affine with rank-3 segment rows, so it takes the reduced-tangent path."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
+    assert (_affine_segment_basis(ctrl, a0) is None) == (case == 1)
     sim = jt.RK4(40)
     J = jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1]
     J_dense = jax.jacfwd(lambda a: jt.simulate(prob, ctrl, a, simulator=sim).x[-1])(a0)
