@@ -37,7 +37,8 @@ Run (from the repository root; the default took 2 minutes on 2 shared CPU cores)
     PYTHONPATH=. python examples/solar_sail.py --targets mars --seeds 10 --generations 1000
 
 Timing notes: each solver is compiled once for all targets (the three problems differ only
-in their array `args`, see `_with_args`), and compilation is timed apart from the runs. The
+in their array `args` and their names, which take no part in compilation), and compilation
+is timed apart from the runs. The
 gradient solvers run their starts one after another in one compiled loop (`lax.map`, what
 `jt.solve_batch` does on CPU); the metaheuristics run their seeds side by side (`vmap`).
 """
@@ -123,19 +124,10 @@ def parse_args(argv=None):
 # ---------------------------------------------------------------------------- problems
 
 
-# The three targets' problems differ only in `args` (arrays), but a Problem's name is part of
-# its static structure, so `ss.problem("venus")` would recompile every solver compiled for
-# `ss.problem("mars")`. One base problem with the target's args swapped in shares the
-# compiled code (its `name` stays "solar-sail-mars"; nothing below reads it).
-_BASE = ss.problem("mars")
-
-
-def _with_args(args):
-    return eqx.tree_at(lambda q: q.args, _BASE, args)
-
-
 def target_problem(target):
-    return _with_args(ss.problem(target).args)
+    # The three problems differ only in `args` (arrays) and their names (which take no part
+    # in compilation): code compiled for one target runs the others.
+    return ss.problem(target)
 
 
 def _sign(target):
@@ -222,24 +214,23 @@ def _pick_best_gradient(runs):
 
 
 def compile_multistart(solver, ctrl, sim, max_steps, n_starts):
-    """A compiled `(args, a0s) -> Solution` running `jt.solve` from every row of `a0s` in
+    """A compiled `(problem, a0s) -> Solution` running `jt.solve` from every row of `a0s` in
     turn (`lax.map`; on CPU that is what `jt.solve_batch` does, and it avoids batched LAPACK
-    calls), for any target's `args`. Returns `(compiled, seconds to compile)`."""
+    calls), for any target's problem. Returns `(compiled, seconds to compile)`."""
 
-    def run(args, a0s):
-        prob = _with_args(args)
+    def run(prob, a0s):
         return jax.lax.map(lambda a0: jt.solve(prob, ctrl, a0, solver, simulator=sim, max_steps=max_steps), a0s)
 
     t0 = time.perf_counter()
     a0s = jnp.zeros((n_starts, ctrl.num_params))
-    compiled = jax.jit(run).lower(_BASE.args, a0s).compile()
+    compiled = eqx.filter_jit(run).lower(target_problem("mars"), a0s).compile()
     return compiled, time.perf_counter() - t0
 
 
 def run_gradient(key, compiled, target, ctrl, sim, a0s, labels, tf_floor):
     prob = target_problem(target)
     t0 = time.perf_counter()
-    sol = compiled(prob.args, a0s)
+    sol = compiled(prob, a0s)
     jax.block_until_ready(sol.params)
     wall = time.perf_counter() - t0
     runs = []
@@ -295,16 +286,17 @@ def make_optimizer(key, population):
 
 
 def compile_population(optimizer, ctrl, sim, weights, generations, seeds):
-    """A compiled `(args, lower, upper, keys) -> PopulationResult` (one run per key, vmapped)
-    on the penalty functional of any target. Returns `(compiled, seconds to compile)`."""
+    """A compiled `(problem, lower, upper, keys) -> PopulationResult` (one run per key,
+    vmapped) on the penalty functional of any target's problem. Returns
+    `(compiled, seconds to compile)`."""
 
-    def run(args, lower, upper, keys):
-        J = ss.penalty_objective(_with_args(args), ctrl, simulator=sim, weights=weights)
+    def run(prob, lower, upper, keys):
+        J = ss.penalty_objective(prob, ctrl, simulator=sim, weights=weights)
         return jax.vmap(lambda k: mh.minimize(optimizer, J, lower, upper, k, max_iterations=generations))(keys)
 
     t0 = time.perf_counter()
     lower, upper = ss.box(ctrl, "mars")
-    compiled = jax.jit(run).lower(_BASE.args, lower, upper, seed_keys(seeds)).compile()
+    compiled = eqx.filter_jit(run).lower(target_problem("mars"), lower, upper, seed_keys(seeds)).compile()
     return compiled, time.perf_counter() - t0
 
 
@@ -316,7 +308,7 @@ def run_population(key, compiled, target, ctrl, sim, seeds, population, tf_floor
     prob = target_problem(target)
     lower, upper = ss.box(ctrl, target)
     t0 = time.perf_counter()
-    res = compiled(prob.args, lower, upper, seed_keys(seeds))
+    res = compiled(prob, lower, upper, seed_keys(seeds))
     jax.block_until_ready(res.x)
     wall = time.perf_counter() - t0
     runs = []

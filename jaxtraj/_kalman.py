@@ -70,8 +70,12 @@ def keep_knots_ordered(da, P, knots, dknots, a_t):
     z_star = gaps / a_t
     da, P, _ = sequential_update(da, P, -D, z_star, (z_star**2) / 12.0 + 1e-300, active=violated)
     closing = D @ da
+    # A gap already at 0 (a collapsed segment, a duration h_k = 0 at its bound) is held there
+    # by its observation (z* = 0, variance 0) up to round-off; only a real closing scales the
+    # step (else one collapsed segment would freeze every other parameter).
+    real = closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da)
     floor = gaps / (2.0 * a_t)
-    limit = jnp.where((closing < 0) & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
+    limit = jnp.where(real & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
     return da * jnp.minimum(1.0, jnp.min(limit)), P
 
 

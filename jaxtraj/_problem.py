@@ -43,7 +43,15 @@ class Problem(eqx.Module):
     - `control_lower`, `control_upper`: optional bounds on u, shape `(nu,)`.
     - `path`: optional `C(t, x, u, args) -> (q,)` with C <= 0 required along the trajectory.
     - `path_names`: a short name per component of C.
-    - `name`: the problem's name.
+    - `name`: the problem's name, a label for reports, result files and plots.
+
+    !!! note "The name does not take part in compilation"
+        Compiled code is keyed by a problem's static structure (functions, sizes) and not
+        by its name: problems that differ only in `name` and array values (`x0`, `args`,
+        bounds), e.g. `jt.problems.solar_sail.problem("mars")` and `("venus")`, share every
+        compiled solver, simulation and sensitivity. For the same reason problems equal in
+        everything but their names compare equal (`eqx.tree_equal`), and code inside `jit`
+        must not branch on `name` (a cache hit reuses the code traced for the first name).
     """
 
     dynamics: Callable
@@ -59,7 +67,7 @@ class Problem(eqx.Module):
     control_upper: jax.Array | None = None
     path: Callable | None = None
     path_names: tuple[str, ...] = ()
-    name: str = "problem"
+    _label: "_Label" = None  # the name; see `name`
 
     def __init__(
         self,
@@ -105,8 +113,15 @@ class Problem(eqx.Module):
         self.control_upper = None if control_upper is None else _bound(control_upper, num_controls, "control_upper")
         self.path = path
         self.path_names = tuple(path_names)
-        self.name = name
+        if not isinstance(name, str):
+            raise ValueError(f"`name` must be a str; got {type(name).__name__}.")
+        self._label = _Label(name)
         self._check_signatures()
+
+    @property
+    def name(self) -> str:
+        """The problem's name (a label; it does not take part in compilation)."""
+        return self._label.text
 
     @property
     def num_states(self) -> int:
@@ -137,6 +152,27 @@ class Problem(eqx.Module):
                     f"(n={n} states, nu={nu} controls, {self.num_constraints} constraint names); "
                     f"got {getattr(out, 'shape', type(out).__name__)}."
                 )
+
+
+class _Label:
+    """A string carried through pytree operations as a static leaf that takes no part in
+    equality or hashing: all labels compare equal. `eqx.filter_jit` (and so every jaxtraj
+    solver) keys its compilation cache on the static leaves' equality and hash, so a
+    problem's name never causes a recompilation."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __eq__(self, other):
+        return isinstance(other, _Label)
+
+    def __hash__(self):
+        return hash(_Label)
+
+    def __repr__(self):
+        return repr(self.text)
 
 
 def _bound(value, nu, name):

@@ -3,6 +3,7 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._status import Status
 
@@ -53,6 +54,19 @@ class Solution(eqx.Module):
     - `max_path_constraint`, `max_path_time`: for problems with path constraints C <= 0
       (solvers that handle them), the largest C on the integration grid (<= 0: satisfied;
       minus the worst margin) and where it occurs; None otherwise.
+
+    **Batched solutions.** `sols[i]` is start i's `Solution` (the same as
+    `jax.tree.map(lambda x: x[i], sols)`; a slice, index array or boolean mask selects
+    several starts; `sols.tf.shape[0]` is the number of starts) and `for s in sols` iterates
+    over the starts:
+
+        sols = jt.solve_batch(prob, ctrl, a0s)      # or jax.vmap(jt.solve ...)(a0s)
+        jt.status_name(sols[3].status)              # "SUCCESS"
+        jt.status_name(sols.status)                 # array of names, one per start
+        ok = sols[sols.status == jt.Status.SUCCESS]
+
+    (`sols.status[i]` does not work: a `Status` cannot be indexed; index the Solution.)
+    An unbatched Solution raises `TypeError` on `[]` and iteration.
     """
 
     params: jax.Array
@@ -68,3 +82,25 @@ class Solution(eqx.Module):
     history: History
     max_path_constraint: jax.Array | None = None
     max_path_time: jax.Array | None = None
+
+    def _batch_size(self, what: str) -> int:
+        shape = jnp.shape(self.tf)
+        if not shape:
+            raise TypeError(
+                f"{what} needs a batched Solution (from jax.vmap of a solve or jt.solve_batch); "
+                "this one is a single solve."
+            )
+        return shape[0]
+
+    def __getitem__(self, index) -> "Solution":
+        n = self._batch_size("Indexing")
+        if isinstance(index, int | np.integer):
+            if not -n <= index < n:
+                raise IndexError(f"start {index} out of range for a batch of {n}.")
+        elif isinstance(index, tuple):
+            raise TypeError("index a batched Solution along its start axis only: sols[i], sols[i:j] or sols[mask].")
+        return jax.tree.map(lambda x: x[index], self)
+
+    def __iter__(self):
+        for i in range(self._batch_size("Iteration")):
+            yield self[i]

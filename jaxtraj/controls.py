@@ -473,7 +473,9 @@ class SaturatedSpline(AbstractControl):
 
     def _check_values(self, a):
         h = a[: self.segments] if self.free_durations else a[:1]
-        bad = np.flatnonzero(h < 0)
+        # A collapsed segment comes back from a solver at h_k = 0 up to round-off (-6e-17 seen):
+        # tolerated, so that a solution can be a starting vector again.
+        bad = np.flatnonzero(h < -1e-12 * max(1.0, float(np.sum(np.abs(h)))))
         if bad.size:
             i = int(bad[0])
             what = "segment durations h_k" if self.free_durations else "the final time tf"

@@ -1,5 +1,7 @@
 """Figures (matplotlib, imported lazily; never traced)."""
 
+from typing import NamedTuple
+
 import numpy as np
 
 
@@ -12,25 +14,75 @@ def _plt():
     return plt
 
 
-def polar_angle(traj):
-    """theta(t) for a planar orbit trajectory with states (radial velocity, radius,
-    tangential velocity): theta' = v_t / r, integrated by the trapezoid rule."""
+class OrbitLayout(NamedTuple):
+    """Where a planar orbit problem keeps its polar coordinates: state indices of the
+    `radius` and the `tangential_velocity`, and of the `polar_angle` if it is a state
+    (None: theta is integrated from theta' = v_t / r)."""
+
+    radius: int
+    tangential_velocity: int
+    polar_angle: int | None = None
+
+
+def orbit_layout(problem) -> OrbitLayout:
+    """The `OrbitLayout` of a problem, from its state names "radius", "tangential velocity"
+    and (optional) "polar angle" (as in `problems.earth_mars`: radial velocity, radius,
+    tangential velocity; and `problems.solar_sail`: radius, polar angle, radial velocity,
+    tangential velocity). Raises `ValueError` if the names are not there."""
+    names = tuple(problem.state_names)
+    missing = [n for n in ("radius", "tangential velocity") if n not in names]
+    if missing:
+        raise ValueError(
+            f"problem {problem.name!r} has no state named {' or '.join(map(repr, missing))} "
+            f"(state names {names}); pass an OrbitLayout(radius=..., tangential_velocity=..., polar_angle=...)."
+        )
+    theta = names.index("polar angle") if "polar angle" in names else None
+    return OrbitLayout(names.index("radius"), names.index("tangential velocity"), theta)
+
+
+def _layout(layout) -> OrbitLayout:
+    if isinstance(layout, OrbitLayout):
+        return layout
+    if hasattr(layout, "state_names"):
+        return orbit_layout(layout)
+    raise ValueError(f"`layout` must be a jaxtraj Problem or an OrbitLayout; got {type(layout).__name__}.")
+
+
+def polar_angle(traj, layout):
+    """theta(t) of a planar orbit trajectory. `layout`: the problem (see `orbit_layout`) or
+    an `OrbitLayout`. A polar-angle state is read directly; otherwise theta' = v_t / r is
+    integrated by the trapezoid rule from theta(0) = 0."""
+    lay = _layout(layout)
+    x = np.asarray(traj.x)
+    if lay.polar_angle is not None:
+        return x[:, lay.polar_angle].copy()
     t = np.asarray(traj.t)
-    rate = np.asarray(traj.x[:, 2]) / np.asarray(traj.x[:, 1])
+    rate = x[:, lay.tangential_velocity] / x[:, lay.radius]
     dt = np.diff(t)
     return np.concatenate([[0.0], np.cumsum(0.5 * dt * (rate[1:] + rate[:-1]))])
 
 
-def orbit_plane(ax, traj, r_target, *, label="transfer", color="C0"):
-    """The transfer in the orbital plane, with the initial (r = 1) and target orbits."""
-    theta = polar_angle(traj)
-    r = np.asarray(traj.x[:, 1])
+def orbit_xy(traj, layout):
+    """Cartesian coordinates `(x, y)` in the orbital plane (x axis through the start when
+    theta(0) = 0)."""
+    lay = _layout(layout)
+    theta = polar_angle(traj, lay)
+    r = np.asarray(traj.x)[:, lay.radius]
+    return r * np.cos(theta), r * np.sin(theta)
+
+
+def orbit_plane(ax, traj, r_target, *, layout, label="transfer", color="C0"):
+    """The transfer in the orbital plane, with the initial and target circular orbits.
+    `layout`: the problem or an `OrbitLayout` (see `orbit_layout`)."""
+    lay = _layout(layout)
+    xs, ys = orbit_xy(traj, lay)
+    r0 = float(np.asarray(traj.x)[0, lay.radius])
     circle = np.linspace(0, 2 * np.pi, 361)
-    ax.plot(np.cos(circle), np.sin(circle), color="0.55", lw=1, ls="--", label="initial orbit (r = 1)")
+    ax.plot(r0 * np.cos(circle), r0 * np.sin(circle), color="0.55", lw=1, ls="--", label=f"initial orbit (r = {r0:g})")
     ax.plot(r_target * np.cos(circle), r_target * np.sin(circle), color="C3", lw=1, ls="--",
             label=f"target orbit (r = {r_target:g})")
-    ax.plot(r * np.cos(theta), r * np.sin(theta), color=color, lw=2, label=label)
-    ax.plot([r[-1] * np.cos(theta[-1])], [r[-1] * np.sin(theta[-1])], "o", color=color)
+    ax.plot(xs, ys, color=color, lw=2, label=label)
+    ax.plot([xs[-1]], [ys[-1]], "o", color=color)
     ax.plot([0], [0], marker="*", color="orange", ms=12, ls="none", label="Sun")
     ax.set_aspect("equal")
     ax.set_xlabel("x [r0 = 1 AU]")
@@ -82,14 +134,15 @@ def plot_convergence(ax, sol):
 
 def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=None):
     """A 2x2 overview: control history, states, convergence history, and (for orbit
-    transfers, when `r_target` is given) the trajectory in the orbital plane."""
+    transfers, when `r_target` is given) the trajectory in the orbital plane, its state
+    layout taken from `problem` (`orbit_layout`)."""
     plt = _plt()
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     plot_controls(axes[0, 0], problem, traj)
     plot_states(axes[0, 1], problem, traj)
     plot_convergence(axes[1, 0], sol)
     if r_target is not None:
-        orbit_plane(axes[1, 1], traj, r_target)
+        orbit_plane(axes[1, 1], traj, r_target, layout=problem)
         axes[1, 1].set_title("trajectory in the orbital plane")
     else:
         axes[1, 1].axis("off")
@@ -103,7 +156,8 @@ def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=N
 
 def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=None):
     """`solution.png` (overview), `histories.png` (control and states), `convergence.png`
-    and, for orbit transfers, `orbit.png`. Returns the file names written."""
+    and, for orbit transfers (`r_target` given; state layout from `problem`, see
+    `orbit_layout`), `orbit.png`. Returns the file names written."""
     import os
 
     plt = _plt()
@@ -125,7 +179,7 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
     names.append("convergence.png")
     if r_target is not None:
         fig, ax = plt.subplots(figsize=(7, 7))
-        orbit_plane(ax, traj, r_target)
+        orbit_plane(ax, traj, r_target, layout=problem)
         ax.set_title(title or "trajectory in the orbital plane", fontsize=10)
         fig.tight_layout()
         fig.savefig(os.path.join(folder, "orbit.png"), dpi=110)

@@ -60,3 +60,15 @@ def counting_problem(prob):
         return base(t, x, u, args)
 
     return jt.Problem(counting, prob.x0, prob.terminal, prob.constraint_names, args=prob.args), counter
+
+
+def load_example(name):
+    """Import `examples/<name>.py` as a module (the examples are scripts, not a package)."""
+    import importlib.util
+    import os
+
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"{name}_example", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

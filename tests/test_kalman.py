@@ -73,3 +73,27 @@ def test_inactive_rows_are_skipped():
     want = sequential_update(da, P, H[active], z[active], r[active])
     np.testing.assert_allclose(got[0], want[0], rtol=1e-12)
     np.testing.assert_allclose(got[1], want[1], rtol=1e-12, atol=1e-14)
+
+
+def test_knot_ordering_holds_a_collapsed_segment_without_freezing_the_step():
+    """Appendix C with a segment already collapsed (knots 0, 1, 1, 2; the parameters are the
+    three free knots): a step closing that zero gap is corrected to keep it at 0 (its
+    observation z* = 0 has variance 0), i.e. to the P-metric projection of the step onto
+    t2 - t1 = const, and the rest of the step survives. (It used to be scaled to 0 whole
+    when round-off left the held gap at -1e-17: 7 of these 20 covariances, and solar-sail
+    runs stalled on a collapsed duration.)"""
+    from jaxtraj._kalman import keep_knots_ordered
+
+    knots = jnp.array([0.0, 1.0, 1.0, 2.0])
+    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
+    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(3, 3))
+        P = A @ A.T + 0.1 * np.eye(3)
+        da = np.array([0.1, 0.0, 0.5]) + 0.01 * rng.normal(size=3)  # t1 up: the zero gap would close
+        d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0)
+        reference = da - P @ D.T @ np.linalg.solve(D @ P @ D.T, D @ da)
+        np.testing.assert_allclose(d, reference, atol=1e-12)
+        gaps = np.diff(np.asarray(knots + dknots @ d))
+        assert abs(gaps[1]) < 1e-12 and np.all(gaps >= -1e-15)

@@ -2,26 +2,29 @@
 gradient solver, a metaheuristic and the indirect reference) and writes its table,
 record and figures."""
 
-import importlib.util
 import json
 import os
 
 import numpy as np
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _load_example():
-    spec = importlib.util.spec_from_file_location("solar_sail_example", os.path.join(REPO, "examples", "solar_sail.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from helpers import load_example
 
 
 def test_solar_sail_example_quick(tmp_path, capsys):
-    example = _load_example()
+    example = load_example("solar_sail")
     out = str(tmp_path / "sail")
-    record = example.main(["--quick", "--targets", "venus", "--methods", "search", "gwo", "indirect", "--out", out])
+    record = example.main(
+        [
+            "--quick",
+            "--targets",
+            "venus",
+            "--methods",
+            "search",
+            "gwo",
+            "indirect",
+            "--out",
+            out,
+        ]
+    )
     printed = capsys.readouterr().out
 
     assert sorted(os.listdir(out)) == [
@@ -38,7 +41,9 @@ def test_solar_sail_example_quick(tmp_path, capsys):
     methods = {r["method"]: r for r in record["results"]}
     assert set(methods) == {"KalmanSearch", "GreyWolf"}
     gwo = methods["GreyWolf"]
-    assert len(gwo["runs"]) == 2 and all(r["evaluations"] == 10 * 9 for r in gwo["runs"])  # population x (generations + 1)
+    assert len(gwo["runs"]) == 2 and all(
+        r["evaluations"] == 10 * 9 for r in gwo["runs"]
+    )  # population x (generations + 1)
     assert np.asarray(gwo["history_best"]).shape == (2, 8)
     for m in record["results"]:
         for r in m["runs"]:

@@ -142,7 +142,10 @@ def problem(target: str = "mars", a0: float = KELLEY_A0, *, r_f: float | None = 
     **Returns:** a `jt.Problem` with x0 = (1, 0, 0, sqrt(mu)) (Earth's circular orbit; (1, 0, 0, 1)
     for the default mu = 1; set at construction), terminal constraints (radius,
     radial velocity, tangential velocity), objective tf, control bounds [-pi/2, pi/2] and
-    `args = {"a0", "r_f", "mu"}` (float64 arrays: change them without recompiling).
+    `args = {"a0", "r_f", "mu"}` (float64 arrays: change them without recompiling) and the
+    name `"solar-sail-<target>"` (`"solar-sail-r<r_f>"` with `r_f`). The problems of
+    different targets differ only in `args` and names, which take no part in compilation:
+    a solver compiled for one target runs the others without recompiling.
     """
     radius = _target_radius(target, r_f)
     a0 = float(a0)
