@@ -76,7 +76,7 @@ def test_filter_step_is_the_qp_solution(p, m):
         ev = jt.Evaluation(xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(G_a), E=jnp.asarray(E),
                            H=jnp.asarray(H), status=None)
         # one segment, knots that never approach each other: no ordering observation
-        d, lam = direction(ev, jnp.asarray(B), jnp.array([0.0, 1.0]), jnp.zeros((2, p)))
+        d, lam = direction(ev, jnp.asarray(B), jnp.zeros(m), jnp.array([0.0, 1.0]), jnp.zeros((2, p)))
         _check_qp(B, H, G_a, E, d, lam)
 
 
@@ -119,7 +119,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     ev = evaluate_restricted(prob, ctrl, a0, sim)
     lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
     _, B = solver._hessian(prob, ctrl, a0, sim, lam)
-    d, lam_qp = solver._direction(ev, B, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
+    d, lam_qp = solver._direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
     dlam, mu, phi0, slope = solver._line_search_start(ev, lam, 0.0, B, d, lam_qp)
     assert float(mu) > 0
     phi = lambda t: _merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)  # noqa: E731
