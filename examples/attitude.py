@@ -20,24 +20,24 @@ Rows of the table:
   its own unconstrained optimum (a natural continuation start, 0.71 deg inside the cone), and
   the AugmentedLagrangian optimum (a check that the KKT point holds).
 
-What each solver achieved (default run: P = 8, RK4(20), 600 steps; 2 min 9 s on 2 shared CPU
-cores, of which 89 s compilation):
+What each solver achieved (default run: P = 8, RK4(20), 600 steps; 53 s on 2 CPU cores, of
+which ~40 s compilation; 2026-11-22):
 
 * AugmentedLagrangian solves the constrained slew in both forms from rest: energy 2.264895
   (x 1e-4 N^2 m^2 s), +5.06 % over the unconstrained 2.155796; quaternion 2.264895333 vs Euler
   2.264895342, 4.0e-9 relative; max |E| <= 7.8e-10; the boresight stays outside the cone on the
   solver grid (max C = 4.4e-10 in cosine units) and dips 3.3e-5 deg into it between grid points
   on the 10x grid (the constraint is only imposed on the solver grid).
-* KalmanSQP solves the *unconstrained* slew in 4 iterations (6 integrations), but does **not**
-  solve the constrained one, in either form and from any of the three starts: from rest and from
-  its own unconstrained optimum it STALLS at points with 40-300x the optimal energy (projected
-  gradient ~10; some feasible, some not); started at the AugmentedLagrangian optimum it does not
-  stay there (quaternion: MAX_ITERATIONS, projected gradient grows from 2.4e-6 to 1.5e-3; Euler:
-  STALLED after drifting to +1.9e-4 in energy). Where exactly it stalls depends on round-off
-  (the same settings compiled differently gave other end points). Its path constraints enter as
-  equality observations at every violated grid point (96 of 168 points at the unconstrained
-  optimum, against 21 degrees of freedom), and its merit function and BFGS Hessian carry no path
-  multipliers. These failures are reported as they are.
+* KalmanSQP solves the *unconstrained* slew in 4 iterations (6 integrations). On the
+  constrained one (its path points observed through an active set, see jaxtraj/_kalman_sqp.py)
+  it reaches the AugmentedLagrangian energy from rest in both forms, slowly (220-265
+  iterations: its first steps overshoot to large energies): Euler 2.264895365 SUCCESS,
+  quaternion 2.264895422 STALLED at a projected gradient of 3e-4 (the touching point moves
+  between grid points). From its own unconstrained optimum it stalls in 7 iterations at
+  2.26489498, 1.3e-7 (cosine units) inside the cone on its grid; from the AugmentedLagrangian
+  optimum it stalls after one step, 2.8e-5 inside. Its path also depends on round-off. These
+  outcomes are reported as they are; for path constraints AugmentedLagrangian is the robust
+  choice today.
 
 Output: a Markdown table on stdout and in `OUT/results.md`, `OUT/results.json` (every row with
 its parameters), `OUT/sky_path.png` (the boresight's path around the sun: stereographic
@@ -47,7 +47,7 @@ solutions).
 
 Run (from the repository root):
 
-    PYTHONPATH=. python examples/attitude.py                 # default: about 2 minutes on 2 CPU cores, mostly compilation
+    PYTHONPATH=. python examples/attitude.py                 # default: about a minute on 2 CPU cores, mostly compilation
     PYTHONPATH=. python examples/attitude.py --quick         # smoke run (P = 4, RK4(10), 300 steps): about 1.5 minutes
     PYTHONPATH=. python examples/attitude.py --quick --solvers al   # what tests/test_attitude_example.py runs
     PYTHONPATH=. python examples/attitude.py --segments 12 --solvers al
