@@ -11,7 +11,8 @@ call (compile + solve) and warm solve time (best of 3), and the warm-time ratio 
 measured in the same run. Also writes `benchmarks/convergence_case5.png`: max |E| and
 |tf - tf*| against the number of integrations for every solver on case 5.
 
-CasADi + IPOPT is not in this table: it is not installed here (it would be an optional extra).
+CasADi + IPOPT (`jaxtraj.baselines.solve_ipopt`, limited-memory Hessians, on the same compiled
+evaluation) is included when CasADi is installed (`pip install -e '.[bench]'`).
 
 Run: `python benchmarks/compare_solvers.py [--cases 4 5] [--no-plot]`.
 """
@@ -25,7 +26,14 @@ import jax
 import numpy as np
 
 import jaxtraj as jt
-from jaxtraj.baselines import solve_slsqp
+from jaxtraj.baselines import solve_ipopt, solve_slsqp
+
+try:
+    import casadi  # noqa: F401
+
+    HAVE_CASADI = True
+except ImportError:
+    HAVE_CASADI = False
 
 EM = jt.problems.earth_mars
 
@@ -67,20 +75,23 @@ def run_case(case):
     for name, solver in solvers.items():
         sol, first, warm = _timed(lambda solver=solver: jt.solve(prob, ctrl, a0, solver))
         rows[name] = {**_row(sol), "first": first, "warm": warm}
-    res, first, warm = _timed(lambda: solve_slsqp(prob, ctrl, a0, maxiter=5000))
-    G_a_H = jt.evaluate(prob, ctrl, res.params)
-    pg = float(jt._kalman_search._projected_gradient(G_a_H.G_a, G_a_H.H))
-    rows["SLSQP"] = {
-        "status": "SUCCESS" if res.success else "FAILED",
-        "tf": res.tf,
-        "maxE": res.max_constraint_error,
-        "pg": pg,
-        "iterations": res.iterations,
-        "integrations": res.evaluations,
-        "first": first,
-        "warm": warm,
-        "history": (res.history_objective, res.history_max_constraint_error),
-    }
+    baselines = {"SLSQP": lambda: solve_slsqp(prob, ctrl, a0, maxiter=5000)}
+    if HAVE_CASADI:
+        baselines["IPOPT (CasADi)"] = lambda: solve_ipopt(prob, ctrl, a0)
+    for name, run in baselines.items():
+        res, first, warm = _timed(run)
+        G_a_H = jt.evaluate(prob, ctrl, res.params)
+        rows[name] = {
+            "status": "SUCCESS" if res.success else "FAILED",
+            "tf": res.tf,
+            "maxE": res.max_constraint_error,
+            "pg": float(jt._kalman_search._projected_gradient(G_a_H.G_a, G_a_H.H)),
+            "iterations": res.iterations,
+            "integrations": res.evaluations,
+            "first": first,
+            "warm": warm,
+            "history": (res.history_objective, res.history_max_constraint_error),
+        }
     return rows
 
 

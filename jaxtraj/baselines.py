@@ -4,6 +4,9 @@ search.
 `solve_slsqp` hands the restricted problem "minimize G(a) subject to E(a) = 0" to
 `scipy.optimize.minimize(method="SLSQP")`, with G, G_a, E and H = dE/da from
 `evaluate_restricted` (one jit-compiled function, one integration per distinct `a`).
+`solve_ipopt` hands the same problem, with the same functions, to IPOPT through CasADi
+(an optional extra: `pip install jaxtraj[bench]`; IPOPT with limited-memory Hessians, since
+CasADi sees the JAX evaluation as a black box with first derivatives).
 """
 
 import dataclasses
@@ -27,7 +30,7 @@ MIN_KNOT_GAP = 1e-6
 
 @dataclasses.dataclass(frozen=True)
 class SLSQPResult:
-    """Outcome of `solve_slsqp`.
+    """Outcome of `solve_slsqp` (and of `solve_ipopt`, with IPOPT's iterations and message).
 
     - `params`: final parameter vector (float64 numpy).
     - `tf`: final time tf(params).
@@ -177,4 +180,134 @@ def solve_slsqp(
     )
 
 
-__all__ = ["SLSQPResult", "solve_slsqp"]
+def _casadi_function(ev, n, m):
+    """A CasADi Callback a -> [G; E] with its Jacobian [G_a; H], both from `ev` (one
+    integration per distinct a)."""
+    import casadi as ca
+
+    class Jacobian(ca.Callback):
+        def __init__(self, name, opts):
+            ca.Callback.__init__(self)
+            self.construct(name, opts)
+
+        def get_n_in(self):
+            return 2
+
+        def get_n_out(self):
+            return 1
+
+        def get_sparsity_in(self, i):
+            return ca.Sparsity.dense(n, 1) if i == 0 else ca.Sparsity.dense(1 + m, 1)
+
+        def get_sparsity_out(self, i):
+            return ca.Sparsity.dense(1 + m, n)
+
+        def eval(self, arg):
+            v = ev(np.asarray(arg[0]).ravel())
+            return [np.vstack([v["G_a"][None, :], v["H"]])]
+
+    class Values(ca.Callback):
+        def __init__(self, name, opts):
+            ca.Callback.__init__(self)
+            self.construct(name, opts)
+
+        def get_n_in(self):
+            return 1
+
+        def get_n_out(self):
+            return 1
+
+        def get_sparsity_in(self, i):
+            return ca.Sparsity.dense(n, 1)
+
+        def get_sparsity_out(self, i):
+            return ca.Sparsity.dense(1 + m, 1)
+
+        def eval(self, arg):
+            v = ev(np.asarray(arg[0]).ravel())
+            return [np.concatenate([[v["G"]], v["E"]])]
+
+        def has_jacobian(self):
+            return True
+
+        def get_jacobian(self, name, inames, onames, opts):
+            self._jacobian = Jacobian(name, opts)  # CasADi keeps no reference: we do
+            return self._jacobian
+
+    return Values("jaxtraj_restricted", {"enable_fd": False})
+
+
+def solve_ipopt(
+    problem: Problem,
+    control: AbstractControl,
+    a0,
+    *,
+    simulator: AbstractSimulator | None = None,
+    method: str = "forward",
+    tol: float = 1e-10,
+    max_iter: int = 3000,
+) -> SLSQPResult:
+    """Solve "minimize G(a) subject to E(a) = 0" (knots ordered as in `solve_slsqp`) with
+    IPOPT through CasADi, on the same compiled evaluation as `solve_slsqp`.
+
+    CasADi is an optional dependency (`pip install jaxtraj[bench]` or `pip install casadi`);
+    `ImportError` with that hint if it is missing. IPOPT runs with `hessian_approximation =
+    limited-memory` (only first derivatives cross the JAX/CasADi boundary), `tol` and
+    `constr_viol_tol` = `tol`, at most `max_iter` iterations, no output. Returns an
+    `SLSQPResult` (same fields; `iterations` are IPOPT's, `message` its return status).
+    """
+    try:
+        import casadi as ca
+    except ImportError as err:  # pragma: no cover - exercised only without the extra
+        raise ImportError("solve_ipopt needs CasADi: `pip install jaxtraj[bench]` (or `pip install casadi`).") from err
+    start = time.perf_counter()
+    if simulator is None:
+        simulator = RK4()
+    _check_method(method)
+    a0 = check_inputs(problem, control, a0)
+    check_simulator(simulator)
+
+    ev = _CachedEvaluation(problem, control, simulator, method)
+    n, m = int(a0.shape[0]), problem.num_constraints
+    gaps = _knot_gap_constraint(control, a0)
+    D = gaps["jac"](None)
+    c = gaps["fun"](np.zeros(n))
+    fn = _casadi_function(ev, n, m)
+    x = ca.MX.sym("a", n)
+    values = fn(x)
+    nlp = {"x": x, "f": values[0], "g": ca.vertcat(values[1:], ca.mtimes(ca.DM(D), x) + ca.DM(c))}
+    options = {
+        "ipopt.hessian_approximation": "limited-memory",
+        "ipopt.tol": tol,
+        "ipopt.constr_viol_tol": tol,
+        "ipopt.max_iter": max_iter,
+        "ipopt.print_level": 0,
+        "print_time": False,
+    }
+    solver = ca.nlpsol("jaxtraj_ipopt", "ipopt", nlp, options)
+    K = D.shape[0]
+    res = solver(x0=np.asarray(a0, dtype=np.float64), lbg=np.zeros(m + K), ubg=np.concatenate([np.zeros(m), np.full(K, np.inf)]))
+    stats = solver.stats()
+    xf = np.asarray(res["x"], dtype=np.float64).ravel()
+    final = ev(xf)
+    message = str(stats["return_status"])
+    if not final["ok"]:
+        message = f"{message} (final evaluation: {Status[final['status']]})"
+    E = final["E"].copy()
+    return SLSQPResult(
+        params=xf.copy(),
+        tf=final["tf"],
+        objective=final["G"],
+        constraints=E,
+        max_constraint_error=float(np.max(np.abs(E))) if E.size else 0.0,
+        iterations=int(stats["iter_count"]),
+        evaluations=ev.count,
+        success=bool(stats["success"]) and final["ok"],
+        message=message,
+        wall_time=time.perf_counter() - start,
+        history_objective=np.array([h[0] for h in ev.history]),
+        history_max_constraint_error=np.array([h[1] for h in ev.history]),
+    )
+
+
+__all__ = ["SLSQPResult", "solve_ipopt", "solve_slsqp"]
