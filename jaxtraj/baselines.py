@@ -158,9 +158,13 @@ def solve_slsqp(
         constraints=constraints,
         options={"ftol": ftol, "maxiter": maxiter},
     )
-    x = np.asarray(res.x, dtype=np.float64)
+    return _result(ev, res.x, int(res.nit), bool(res.success), str(res.message), start)
+
+
+def _result(ev, x, iterations, success, message, start) -> SLSQPResult:
+    """The result at the optimizer's final point `x`, re-evaluated (cached) by `ev`."""
+    x = np.asarray(x, dtype=np.float64).ravel()
     final = ev(x)
-    message = str(res.message)
     if not final["ok"]:
         message = f"{message} (final evaluation: {Status[final['status']]})"
     E = final["E"].copy()
@@ -170,9 +174,9 @@ def solve_slsqp(
         objective=final["G"],
         constraints=E,
         max_constraint_error=float(np.max(np.abs(E))) if E.size else 0.0,
-        iterations=int(res.nit),
+        iterations=iterations,
         evaluations=ev.count,
-        success=bool(res.success) and final["ok"],
+        success=success and final["ok"],
         message=message,
         wall_time=time.perf_counter() - start,
         history_objective=np.array([h[0] for h in ev.history]),
@@ -185,43 +189,37 @@ def _casadi_function(ev, n, m):
     integration per distinct a)."""
     import casadi as ca
 
-    class Jacobian(ca.Callback):
+    class Dense(ca.Callback):
+        """Dense inputs/outputs of the given shapes."""
+
+        inputs: tuple = ()
+        output: tuple = ()
+
         def __init__(self, name, opts):
             ca.Callback.__init__(self)
             self.construct(name, opts)
 
         def get_n_in(self):
-            return 2
+            return len(self.inputs)
 
         def get_n_out(self):
             return 1
 
         def get_sparsity_in(self, i):
-            return ca.Sparsity.dense(n, 1) if i == 0 else ca.Sparsity.dense(1 + m, 1)
+            return ca.Sparsity.dense(*self.inputs[i])
 
         def get_sparsity_out(self, i):
-            return ca.Sparsity.dense(1 + m, n)
+            return ca.Sparsity.dense(*self.output)
+
+    class Jacobian(Dense):
+        inputs, output = ((n, 1), (1 + m, 1)), (1 + m, n)  # (a, nominal output) -> d[G; E]/da
 
         def eval(self, arg):
             v = ev(np.asarray(arg[0]).ravel())
             return [np.vstack([v["G_a"][None, :], v["H"]])]
 
-    class Values(ca.Callback):
-        def __init__(self, name, opts):
-            ca.Callback.__init__(self)
-            self.construct(name, opts)
-
-        def get_n_in(self):
-            return 1
-
-        def get_n_out(self):
-            return 1
-
-        def get_sparsity_in(self, i):
-            return ca.Sparsity.dense(n, 1)
-
-        def get_sparsity_out(self, i):
-            return ca.Sparsity.dense(1 + m, 1)
+    class Values(Dense):
+        inputs, output = ((n, 1),), (1 + m, 1)
 
         def eval(self, arg):
             v = ev(np.asarray(arg[0]).ravel())
@@ -288,26 +286,7 @@ def solve_ipopt(
     K = D.shape[0]
     res = solver(x0=np.asarray(a0, dtype=np.float64), lbg=np.zeros(m + K), ubg=np.concatenate([np.zeros(m), np.full(K, np.inf)]))
     stats = solver.stats()
-    xf = np.asarray(res["x"], dtype=np.float64).ravel()
-    final = ev(xf)
-    message = str(stats["return_status"])
-    if not final["ok"]:
-        message = f"{message} (final evaluation: {Status[final['status']]})"
-    E = final["E"].copy()
-    return SLSQPResult(
-        params=xf.copy(),
-        tf=final["tf"],
-        objective=final["G"],
-        constraints=E,
-        max_constraint_error=float(np.max(np.abs(E))) if E.size else 0.0,
-        iterations=int(stats["iter_count"]),
-        evaluations=ev.count,
-        success=bool(stats["success"]) and final["ok"],
-        message=message,
-        wall_time=time.perf_counter() - start,
-        history_objective=np.array([h[0] for h in ev.history]),
-        history_max_constraint_error=np.array([h[1] for h in ev.history]),
-    )
+    return _result(ev, res["x"], int(stats["iter_count"]), bool(stats["success"]), str(stats["return_status"]), start)
 
 
 __all__ = ["SLSQPResult", "solve_ipopt", "solve_slsqp"]
