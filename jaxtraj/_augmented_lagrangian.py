@@ -649,23 +649,14 @@ class AugmentedLagrangian(AbstractSolver):
 
     def postprocess(self, problem, control, simulator, state: _State) -> Solution:
         box = parameter_box(problem, control, self.min_duration)
-        ev = state.ev
-        if ev.C is None:
-            path = {}
-        else:
-            worst = jnp.max(ev.C, axis=1)
-            path = {"max_path_constraint": jnp.max(worst), "max_path_time": ev.path_t[jnp.argmax(worst)]}
-        return Solution(
-            params=state.a,
-            tf=ev.tf,
-            objective=ev.G,
-            constraints=ev.E,
-            max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
+        return Solution.from_evaluation(
+            state.ev,
+            state.a,
             projected_gradient=jnp.linalg.norm(box.reduce(state.a, state.grad)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,
-            status=Status.where(state.done, state.status, Status.MAX_ITERATIONS),
+            done=state.done,
+            status=state.status,
             history=state.history,
-            **path,
         )

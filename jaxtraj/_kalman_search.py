@@ -414,18 +414,14 @@ class KalmanSearch(AbstractSolver):
         }
 
     def postprocess(self, problem, control, simulator, state: _State) -> Solution:
-        ev = state.ev
-        status = Status.where(state.done, state.status, Status.MAX_ITERATIONS)
-        return Solution(
-            params=state.a,
-            tf=ev.tf,
-            objective=ev.G,
-            constraints=ev.E,
-            max_constraint_error=jnp.max(jnp.abs(ev.E)),
-            projected_gradient=_projected_gradient(ev.G_a, ev.H),
+        return Solution.from_evaluation(
+            state.ev,
+            state.a,
+            projected_gradient=_projected_gradient(state.ev.G_a, state.ev.H),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,
-            status=status,
+            done=state.done,
+            status=state.status,
             history=state.history,
         )

@@ -589,19 +589,14 @@ class KalmanSQP(AbstractSolver):
         }
 
     def postprocess(self, problem, control, simulator, state: _State) -> Solution:
-        ev = state.ev
-        return Solution(
-            params=state.a,
-            tf=ev.tf,
-            objective=ev.G,
-            constraints=ev.E,
-            max_constraint_error=jnp.max(jnp.abs(ev.E)),
-            projected_gradient=_projected_gradient(ev.G_a, _active_rows(ev, self.path_active)),
-            max_path_constraint=None if ev.C is None else _max_path(ev),
-            max_path_time=None if ev.C is None else ev.path_t[jnp.argmax(jnp.max(ev.C, axis=1))],
+        return Solution.from_evaluation(
+            state.ev,
+            state.a,
+            projected_gradient=_projected_gradient(state.ev.G_a, _active_rows(state.ev, self.path_active)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,
-            status=Status.where(state.done, state.status, Status.MAX_ITERATIONS),
+            done=state.done,
+            status=state.status,
             history=state.history,
         )

@@ -83,6 +83,31 @@ class Solution(eqx.Module):
     max_path_constraint: jax.Array | None = None
     max_path_time: jax.Array | None = None
 
+    @classmethod
+    def from_evaluation(cls, ev, params, *, projected_gradient, iterations, integrations, steps, done, status, history):
+        """A solver's result at its final point: the values of the restricted evaluation `ev`
+        there (an `Evaluation`; with path constraints, their worst value and its time), and
+        `status` if the solver stopped (`done`), else MAX_ITERATIONS. Shared by every solver's
+        `postprocess`."""
+        path = {}
+        if ev.C is not None:
+            worst = jnp.max(ev.C, axis=1)
+            path = {"max_path_constraint": jnp.max(worst), "max_path_time": ev.path_t[jnp.argmax(worst)]}
+        return cls(
+            params=params,
+            tf=ev.tf,
+            objective=ev.G,
+            constraints=ev.E,
+            max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
+            projected_gradient=projected_gradient,
+            iterations=iterations,
+            integrations=integrations,
+            steps=steps,
+            status=Status.where(done, status, Status.MAX_ITERATIONS),
+            history=history,
+            **path,
+        )
+
     def _batch_size(self, what: str) -> int:
         shape = jnp.shape(self.tf)
         if not shape:

@@ -6,11 +6,10 @@ import abc
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 from jax import lax
 
 from ._problem import Problem
-from ._simulate import RK4, AbstractSimulator, check_inputs, check_problem_and_control, check_simulator
+from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
 from ._solution import Solution
 from .controls import AbstractControl
 
