@@ -47,6 +47,7 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from ._kalman import keep_knots_ordered, sequential_update
@@ -55,7 +56,7 @@ from ._solution import History, Solution
 from ._solve import AbstractSolver
 from ._status import Status
 
-_ALPHAS = jnp.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03, 0.02, 0.01])
+_ALPHAS = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03, 0.02, 0.01])
 
 
 class _State(eqx.Module):
@@ -86,8 +87,9 @@ def _projected_gradient(G_a, H):
 
 def _largest_alpha(ok_of_alpha, fallback):
     """Largest alpha of the grid with `ok_of_alpha(alpha)`, else `fallback`."""
-    ok = jax.vmap(ok_of_alpha)(_ALPHAS)
-    return jnp.where(jnp.any(ok), _ALPHAS[jnp.argmax(ok)], fallback)
+    alphas = jnp.asarray(_ALPHAS)
+    ok = jax.vmap(ok_of_alpha)(alphas)
+    return jnp.where(jnp.any(ok), alphas[jnp.argmax(ok)], fallback)
 
 
 class KalmanSearch(AbstractSolver):

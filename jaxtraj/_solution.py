@@ -33,8 +33,17 @@ class History(eqx.Module):
         )
 
     def record(self, i, **values) -> "History":
-        """A copy with entry `i` of every field set from `values` (one keyword per field)."""
-        return History(**{k: getattr(self, k).at[i].set(v) for k, v in values.items()})
+        """A copy with entry `i` of every field set from `values` (one keyword per field);
+        an index past the end is dropped, and a zero-length history (no history kept) stays
+        as it is."""
+        if self.objective.shape[-1] == 0:
+            return self
+        return History(**{k: getattr(self, k).at[i].set(v, mode="drop") for k, v in values.items()})
+
+    def clear_from(self, steps) -> "History":
+        """A copy with the entries from `steps` on reset to unused."""
+        unused = History.empty(self.objective.shape[-1])
+        return jax.tree.map(lambda h, e: jnp.where(jnp.arange(h.shape[-1]) < steps, h, e), self, unused)
 
 
 class Solution(eqx.Module):

@@ -10,14 +10,16 @@ from jax import lax
 
 from ._problem import Problem
 from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
-from ._solution import Solution
+from ._solution import History, Solution
 from .controls import AbstractControl
 
 
 class AbstractSolver(eqx.Module):
     """A solver of the restricted problem as a state machine over an array-only state.
 
-    `state` must carry `done` (bool scalar); `step` performs one trajectory integration.
+    `state` must carry `done` (bool scalar), `num_steps` and `history` (a `History`, written
+    only by `History.record`: drivers may give it length 0); `step` performs one trajectory
+    integration.
     """
 
     @abc.abstractmethod
@@ -42,9 +44,16 @@ def _print_progress(step, values):
     print("  " + "  ".join(parts), flush=True)
 
 
-@eqx.filter_jit
-def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
+def _init(solver, problem, control, a0, simulator, max_steps, history=True):
+    """The solver's initial state; with `history=False` its `History` has length 0 (not
+    recorded: under `vmap` the per-step record of a long history costs more than a step)."""
     state = solver.init(problem, control, a0, simulator, max_steps)
+    return state if history else eqx.tree_at(lambda s: s.history, state, History.empty(0))
+
+
+def _loop(solver, problem, control, a0, simulator, max_steps, progress_every=0, history=True):
+    """The solver's final state: `init`, then `step` until `done` or `max_steps` steps."""
+    state = _init(solver, problem, control, a0, simulator, max_steps, history)
     dynamic, static = eqx.partition(state, eqx.is_array)
 
     def cond(dyn):
@@ -63,8 +72,13 @@ def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
             )
         return new_dyn
 
-    dynamic = lax.while_loop(cond, body, dynamic)
-    return solver.postprocess(problem, control, simulator, eqx.combine(dynamic, static))
+    return eqx.combine(lax.while_loop(cond, body, dynamic), static)
+
+
+@eqx.filter_jit
+def _run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
+    state = _loop(solver, problem, control, a0, simulator, max_steps, progress_every)
+    return solver.postprocess(problem, control, simulator, state)
 
 
 def _check_solver(solver, max_steps):

@@ -87,8 +87,9 @@ def test_batch_equals_single_solves(batch, singles):
 
 
 def test_bad_starts_fail_alone_in_a_vmapped_group(batch):
-    # lanes=3: starts 0-2 (with the NaN one) share one vmapped loop, 3-5 (with the hopeless
-    # one) another; the reference batch ran every start on its own (lanes=1, the CPU default).
+    # lanes=3: per chunk, three starts run vmapped and the next one takes the lane of the
+    # first to finish (the NaN start 2 ends at once, start 3 replaces it; the hopeless start 5
+    # runs beside 4 and 6); the reference batch ran every start on its own (lanes=1).
     grouped = solve_batch(PROB, CTRL, STARTS, SOLVER, progress=False, lanes=3, **KW)
     status = [jt.status_name(_row(grouped, i).status) for i in range(7)]
     assert status[NAN] == "NONFINITE"
@@ -376,3 +377,14 @@ def test_two_hosts_with_jax_distributed(batch, tmp_path):
             got = [data[f"arr_{j}"] for j in range(len(data.files))]
         for g, w in zip(got, _leaves(batch), strict=True):
             np.testing.assert_array_equal(g, w)
+
+
+def test_import_leaves_the_cpu_device_count_open():
+    """`import jaxtraj` runs no JAX computation, so a program (and the CLI, for `--starts`) can
+    still split the CPU into one device per core for solve_batch."""
+    code = "import jax, jaxtraj; jax.config.update('jax_num_cpu_devices', 3); print(len(jax.devices('cpu')))"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    proc = subprocess.run([sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "3"
