@@ -6,18 +6,20 @@ How a batch runs:
 
 * One compiled program solves one *chunk* of starts. `jax.shard_map` over a 1-D mesh of
   devices gives every device its own slice of the chunk and its own loops (no cross-device
-  traffic while iterating). On a device the slice runs `lanes` starts at a time: a group is
-  `jax.vmap` of the jitted solve (`_solve._run`), and the groups follow one another
-  (`lax.map`). Every chunk is padded to the same size (a multiple of the device count), so
-  all chunks share one compilation; padding rows are NaN starts, which end at their first
-  evaluation, and are stripped from the result.
+  traffic while iterating). Every chunk is padded to the same size (a multiple of the
+  device count), so all chunks share one compilation; padding rows are NaN starts, which
+  end at their first evaluation, and are stripped from the result.
+* On a device the slice runs on `lanes` vmapped lanes fed from a queue (`_solve_queue`):
+  each iteration is one vmapped solver `step` on every lane, and when a few lanes have
+  finished they hand their solutions over and take the next starts, so no lane idles while
+  starts are left (a vmapped group of whole solves would iterate until its slowest start is
+  done: 40-72 % useful work on Earth-Mars). `lanes=1` is a compiled loop of single solves.
 * Under `vmap` a start's iterations only touch its own lane, so a start that diverges (NaN,
   step limit) comes back with its failure `status` and leaves every other result unchanged.
-  But a vmapped group iterates until its slowest start is done, every lane doing the work
-  of every iteration (finished lanes are masked, and a `lax.cond` on a per-start predicate
-  runs both branches). On CPU that costs more than vmap saves (benchmarks/batch.py), so the
-  default there is `lanes=1` (a compiled loop over single solves, one per device); on
-  accelerators the default is the whole per-device slice in one vmap.
+  Every lane does the work of every step, though: a `lax.cond` on a per-start predicate runs
+  both branches. On CPU, XLA's vmapped kernels gain too little over single ones for that
+  (benchmarks/batch.py: lanes=8 or 32 give 0.9-1.15x the loop, lanes=1 1.2x), so the
+  default there is `lanes=1`; on accelerators it is the whole per-device slice.
 * With `out=FOLDER` each finished chunk is written atomically (`chunk_00000.npz`, ...) next
   to `manifest.json` (number of starts, chunk size, and SHA-256 fingerprints of `a0s` and of
   the problem / control / solver / simulator / `max_steps`). `resume=True` loads the chunks
@@ -27,9 +29,10 @@ How a batch runs:
   results by round-off only). To read a finished folder back, call `solve_batch` again
   with the same inputs and `resume=True`: nothing is recomputed.
 * CPU cores: XLA runs one CPU device on (mostly) one core. To use several cores, split the
-  host into devices before JAX starts:
-  `XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`; `solve_batch` then shards
-  over all of them.
+  host into devices before JAX starts computing: `jax.config.update("jax_num_cpu_devices",
+  os.cpu_count())` right after the imports (`import jaxtraj` runs no JAX computation), or
+  `XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`; `solve_batch` then shards over
+  all of them (the CLI does this for `--starts`).
 
 Several hosts (multi-host is the scaling path; there is no cluster code here). Start the same
 script on every host with the same inputs and call `jax.distributed.initialize` first; the
