@@ -8,8 +8,8 @@ For every target, with the seed's control `SaturatedSpline(P, p)` (free segment 
 * (a) `jt.KalmanSQP` on "minimize tf subject to r = r_f, u = 0, v = v_f", from a grid of
   starts (constant pitch +-`--pitches` degrees, outwards for Mars and inwards for Venus and
   Mercury, times durations summing to `--tf-factors` x half of `ss.TF_BOX[target]`; the
-  solver is not told the indirect answer); for reference `jt.KalmanSearch` from the same
-  starts and SciPy's SLSQP (`jaxtraj.baselines.solve_slsqp`) from the 35 deg / factor 1 start;
+  solver is not told the indirect answer); for reference `jt.KalmanSearch` (the thesis's
+  method with the sail tuning `ss.kalman_search_solver()`) from the same starts and SciPy's SLSQP (`jaxtraj.baselines.solve_slsqp`) from the 35 deg / factor 1 start;
 * (b) `jt.GreyWolf`, `jt.Whale` (linear and quadratic decay of a) and `jt.Dragonfly` on the
   seed's penalty functional (eq. 5, `ss.penalty_objective`, weights `ss.DEFAULT_WEIGHTS`)
   over the box `ss.box`, with the same P, p and simulator, over `--seeds` PRNG keys (vmapped),
@@ -562,7 +562,7 @@ def main(argv=None):
 
     results = []
     # (a) gradient solvers, every start
-    grad_solvers = {"sqp": jt.KalmanSQP(hessian=args.sqp_hessian), "search": jt.KalmanSearch()}
+    grad_solvers = {"sqp": jt.KalmanSQP(hessian=args.sqp_hessian), "search": ss.kalman_search_solver()}
     n_starts = len(args.pitches) * len(args.tf_factors)
     for key in ("sqp", "search"):
         if key not in methods:
