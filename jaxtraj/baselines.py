@@ -3,7 +3,10 @@ search.
 
 `solve_slsqp` hands the restricted problem "minimize G(a) subject to E(a) = 0" to
 `scipy.optimize.minimize(method="SLSQP")`, with G, G_a, E and H = dE/da from
-`evaluate_restricted` (one jit-compiled function, one integration per distinct `a`).
+`evaluate_restricted` (one jit-compiled function, one integration per distinct `a`). Path
+constraints C(t, x, u) <= 0 of the problem become inequalities at every point of the
+integration grid (as `jt.KalmanSQP` and `jt.AugmentedLagrangian` see them), with their
+Jacobian from the same evaluation.
 `solve_ipopt` hands the same problem, with the same functions, to IPOPT through CasADi
 (an optional extra: `pip install jaxtraj[bench]`; IPOPT with limited-memory Hessians, since
 CasADi sees the JAX evaluation as a black box with first derivatives).
@@ -37,6 +40,7 @@ class SLSQPResult:
     - `objective`: G(params).
     - `constraints`: E(params) = M(tf, x(tf)).
     - `max_constraint_error`: max |E(params)|.
+    - `max_path_constraint`: max C over the grid (path constraints C <= 0; -inf without).
     - `iterations`: SLSQP major iterations (`nit`).
     - `evaluations`: number of distinct parameter vectors integrated.
     - `success`: SLSQP reported convergence and the final evaluation is finite.
@@ -51,6 +55,7 @@ class SLSQPResult:
     objective: float
     constraints: np.ndarray
     max_constraint_error: float
+    max_path_constraint: float
     iterations: int
     evaluations: int
     success: bool
@@ -82,6 +87,8 @@ class _CachedEvaluation:
                 "G_a": np.asarray(ev.G_a, dtype=np.float64),
                 "E": np.asarray(ev.E, dtype=np.float64),
                 "H": np.asarray(ev.H, dtype=np.float64),
+                "C": np.zeros(0) if ev.C is None else np.asarray(ev.C, dtype=np.float64).reshape(-1),
+                "C_a": np.zeros((0, a.size)) if ev.C is None else np.asarray(ev.C_a, dtype=np.float64).reshape(-1, a.size),
                 "ok": bool(ev.status == Status.SUCCESS),
                 "status": ev.status,
             }
@@ -150,6 +157,8 @@ def solve_slsqp(
         {"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]},
         _knot_gap_constraint(control, a0),
     ]
+    if problem.path is not None:  # SLSQP's inequalities are fun >= 0
+        constraints.append({"type": "ineq", "fun": lambda a: -ev(a)["C"], "jac": lambda a: -ev(a)["C_a"]})
     res = scipy.optimize.minimize(
         lambda a: ev(a)["G"],
         np.asarray(a0, dtype=np.float64),
@@ -174,6 +183,7 @@ def _result(ev, x, iterations, success, message, start) -> SLSQPResult:
         objective=final["G"],
         constraints=E,
         max_constraint_error=float(np.max(np.abs(E))) if E.size else 0.0,
+        max_path_constraint=float(np.max(final["C"], initial=-np.inf)),
         iterations=iterations,
         evaluations=ev.count,
         success=success and final["ok"],
@@ -185,8 +195,8 @@ def _result(ev, x, iterations, success, message, start) -> SLSQPResult:
 
 
 def _casadi_function(ev, n, m):
-    """A CasADi Callback a -> [G; E] with its Jacobian [G_a; H], both from `ev` (one
-    integration per distinct a)."""
+    """A CasADi Callback a -> [G; E; C] with its Jacobian [G_a; H; C_a], all from `ev` (one
+    integration per distinct a; m = number of E and C rows)."""
     import casadi as ca
 
     class Dense(ca.Callback):
@@ -216,14 +226,14 @@ def _casadi_function(ev, n, m):
 
         def eval(self, arg):
             v = ev(np.asarray(arg[0]).ravel())
-            return [np.vstack([v["G_a"][None, :], v["H"]])]
+            return [np.vstack([v["G_a"][None, :], v["H"], v["C_a"]])]
 
     class Values(Dense):
         inputs, output = ((n, 1),), (1 + m, 1)
 
         def eval(self, arg):
             v = ev(np.asarray(arg[0]).ravel())
-            return [np.concatenate([[v["G"]], v["E"]])]
+            return [np.concatenate([[v["G"]], v["E"], v["C"]])]
 
         def has_jacobian(self):
             return True
@@ -245,8 +255,9 @@ def solve_ipopt(
     tol: float = 1e-10,
     max_iter: int = 3000,
 ) -> SLSQPResult:
-    """Solve "minimize G(a) subject to E(a) = 0" (knots ordered as in `solve_slsqp`) with
-    IPOPT through CasADi, on the same compiled evaluation as `solve_slsqp`.
+    """Solve "minimize G(a) subject to E(a) = 0" (knots ordered and path constraints on the
+    grid as in `solve_slsqp`) with IPOPT through CasADi, on the same compiled evaluation as
+    `solve_slsqp`.
 
     CasADi is an optional dependency (`pip install jaxtraj[bench]` or `pip install casadi`);
     `ImportError` with that hint if it is missing. IPOPT runs with `hessian_approximation =
@@ -267,10 +278,11 @@ def solve_ipopt(
 
     ev = _CachedEvaluation(problem, control, simulator, method)
     n, m = int(a0.shape[0]), problem.num_constraints
+    p = ev(a0)["C"].size  # path constraint rows (grid points x components)
     gaps = _knot_gap_constraint(control, a0)
     D = gaps["jac"](None)
     c = gaps["fun"](np.zeros(n))
-    fn = _casadi_function(ev, n, m)
+    fn = _casadi_function(ev, n, m + p)
     x = ca.MX.sym("a", n)
     values = fn(x)
     nlp = {"x": x, "f": values[0], "g": ca.vertcat(values[1:], ca.mtimes(ca.DM(D), x) + ca.DM(c))}
@@ -284,7 +296,9 @@ def solve_ipopt(
     }
     solver = ca.nlpsol("jaxtraj_ipopt", "ipopt", nlp, options)
     K = D.shape[0]
-    res = solver(x0=np.asarray(a0, dtype=np.float64), lbg=np.zeros(m + K), ubg=np.concatenate([np.zeros(m), np.full(K, np.inf)]))
+    lbg = np.concatenate([np.zeros(m), np.full(p, -np.inf), np.zeros(K)])
+    ubg = np.concatenate([np.zeros(m + p), np.full(K, np.inf)])
+    res = solver(x0=np.asarray(a0, dtype=np.float64), lbg=lbg, ubg=ubg)
     stats = solver.stats()
     return _result(ev, res["x"], int(stats["iter_count"]), bool(stats["success"]), str(stats["return_status"]), start)
 

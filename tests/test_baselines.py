@@ -1,6 +1,7 @@
 """SciPy SLSQP baseline (`jaxtraj.baselines.solve_slsqp`) on Earth-Mars thesis case 4."""
 
 import numpy as np
+import pytest
 
 import jaxtraj as jt
 from jaxtraj.baselines import SLSQPResult, solve_ipopt, solve_slsqp
@@ -54,3 +55,20 @@ def test_ipopt_earth_mars_cases_4_and_5():
         assert res.max_constraint_error <= 1e-10
         assert abs(res.tf - tf_star) < 1e-7
         assert res.iterations <= res.evaluations
+
+
+@pytest.mark.parametrize("solve", [solve_slsqp, solve_ipopt])
+def test_baselines_enforce_path_constraints(solve):
+    """The speed limit x2 <= 1.2 on the min-energy double integrator (analytic energy 7.68,
+    contained in PiecewiseLinear(4); unconstrained: 6 with peak speed 1.5) holds on the grid
+    and the baselines find the analytic optimum."""
+    prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
+    ctrl = jt.controls.PiecewiseLinear(4)
+    res = solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), simulator=jt.RK4(4))
+    assert res.success, res.message
+    assert res.max_path_constraint <= 1e-8
+    assert res.max_constraint_error <= 1e-8
+    assert abs(res.objective - jt.problems.analytic.speed_limited_energy(1.2)) < 1e-6
+    free = solve_slsqp(jt.problems.analytic.min_energy_double_integrator(), ctrl, ctrl.initial_guess(1.2, 0.0, 0.0),
+                       simulator=jt.RK4(4))
+    assert free.max_path_constraint == -np.inf and abs(free.objective - 6.0) < 1e-6
