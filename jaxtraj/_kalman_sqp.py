@@ -20,23 +20,31 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   pure BFGS from a0's Hessian (`exact_iterations=0`) case 3 ends in a worse local minimum
   (3.35114 instead of 3.32080) and cases 1, 2, 7 need 49, 51, 34 iterations; with 3 exact
   iterations all seven reach the best known optima in 11-31 iterations (24, 28, 21, 11, 14,
-  31, 27 with the second-order correction below), at a similar wall time. `hessian="exact"`: the exact
-  Hessian at every candidate (one second-order integration per step: fewer iterations,
-  12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is made positive definite by `convexify`
+  31, 27 with the second-order correction below), at a similar wall time. `hessian="exact"`:
+  the exact Hessian at every candidate (one second-order integration per step: fewer
+  iterations, 12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is made positive definite by `convexify`
   (B = nabla^2 L + c H^T H, which leaves the QP's solution unchanged, then lifted
   eigenvalues where that is not enough).
 * Step rule: backtracking line search on the augmented-Lagrangian merit function
   phi(a, lambda) = G + lambda^T E + mu/2 |E|^2 over (a + alpha d, lambda + alpha
   (lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit
   steps near the solution, so the superlinear rate is not lost to the Maratos effect). The
-  penalty mu rises (never falls) until the directional derivative is at most
-  -1/2 d^T B d. Armijo factor `armijo`; a rejected alpha is replaced by the minimizer of the
+  penalty mu rises (Newton steps on the slope, doubled for a margin) until the directional
+  derivative is at most -1/2 d^T B d, and is kept for the next direction unless it exceeds
+  `mu_max` (1e8): then the next one starts from 0. Where E or C are already at round-off
+  the slope hardly depends on mu, and the Newton step asks for an enormous one: on the
+  attitude slew with the cone mu grew to 2e29, the merit to 5e15, its round-off beyond any
+  decrease, and the quaternion run STALLED at a projected gradient of 2e-4; with the reset
+  both forms reach SUCCESS (234 / 145 iterations). Starting every direction from 0 did as
+  well there and on Earth-Mars, but left the solar-sail Venus and Mars runs crawling at a
+  projected gradient of 6e-9 (tolerance 4.5e-9) instead of SUCCESS. Armijo factor `armijo`; a rejected alpha is replaced by the minimizer of the
   quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5] alpha. Before that, a
   rejected *full* step is retried once with a second-order correction d + d_soc, H d_soc =
   -E(a + d) (the constraints' curvature along d; Nocedal & Wright sec. 15.4), the cheapest
-  candidate in the long curved valleys of these problems: with it the seven cases took 24,
-  28, 21, 11, 14, 31, 27 iterations instead of 24, 32, 23, 11, 14, 37, 29 (BFGS) and 12, 28,
-  16, 8, 9, 18, 16 instead of 14, 34, 18, 8, 9, 88, 16 (exact Hessian).
+  candidate in the long curved valleys of these problems: with it (and the monotone
+  penalty of the time) the seven cases took 24, 28, 21, 11, 14, 31, 27 iterations instead of
+  24, 32, 23, 11, 14, 37, 29 (BFGS) and 12, 28, 16, 8, 9, 18, 16 instead of 14, 34, 18, 8,
+  9, 88, 16 (exact Hessian).
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`),
   exactly as in `KalmanSearch`.
 * Path constraints C(t, x, u) <= 0 (on the integration grid), the appendix-C way: the grid
@@ -49,9 +57,8 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   (max(0, nu + mu C)^2 - nu^2) / (2 mu) per grid point). SUCCESS needs max C <= `ctol` and
   the projected gradient is taken against [H; C_a] of the points with C >= -`path_active`.
   Measured on the attitude slew with the sun cone (examples/attitude.py): from rest, both
-  representations and both Hessian modes reach the augmented-Lagrangian optimum's energy to
-  2e-6 relative, but the last digits can stall (STALLED at a projected gradient of 1e-8 to
-  3e-4) when the touching point moves from one grid point to the next.
+  representations reach the augmented-Lagrangian optimum's energy to 1e-8 relative with
+  SUCCESS (projected gradient <= 3e-9; 234 / 145 iterations, the first ones overshoot).
 * One `step` = one candidate integration (with first-, or with `hessian="exact"`
   second-order sensitivities), branch-free, so a batch under `vmap` runs the same work for
   every start.
@@ -236,6 +243,8 @@ class KalmanSQP(AbstractSolver):
     - `armijo`: sufficient-decrease factor of the merit line search.
     - `min_step`: smallest line-search step before STALLED.
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
+    - `mu_max`: a merit penalty above this is not carried over to the next direction (see
+      the module docs).
     - `radius`: initial cap on a step's largest component |d_i| (parameter units); doubled
       after every full step it limited, reset to the accepted length after a shortened one.
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
@@ -259,6 +268,7 @@ class KalmanSQP(AbstractSolver):
     exact_iterations: int = 3
     path_active: float = 1e-6
     radius: float = 0.5
+    mu_max: float = 1e8
     path_dependence: float = 1e-4
     method: str = "forward"
 
@@ -278,6 +288,7 @@ class KalmanSQP(AbstractSolver):
             "min_curvature": 0 < self.min_curvature < 1,
             "r_rel": 0 < self.r_rel < 1,
             "radius": self.radius > 0,
+            "mu_max": self.mu_max > 0,
             "path_dependence": 0 < self.path_dependence < 1,
             "exact_iterations": isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
         }
@@ -471,7 +482,9 @@ class KalmanSQP(AbstractSolver):
             d_max = jnp.max(jnp.abs(d))
             capped = d_max > state.radius
             d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
-            return (d, *self._line_search_start(ev, lam, state.mu, B, d, lam_qp))
+            # mu anew for every direction (from 0: see the module docs)
+            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)  # see the module docs
+            return (d, *self._line_search_start(ev, lam, mu, B, d, lam_qp))
 
         # If B's step is no descent direction for the merit (B degenerated, or the knot
         # ordering bent the step), restart from a scaled identity. Both are cheap (no

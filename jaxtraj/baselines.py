@@ -292,6 +292,7 @@ def solve_ipopt(
         "ipopt.constr_viol_tol": tol,
         "ipopt.max_iter": max_iter,
         "ipopt.print_level": 0,
+        "ipopt.sb": "yes",  # no banner
         "print_time": False,
     }
     solver = ca.nlpsol("jaxtraj_ipopt", "ipopt", nlp, options)
