@@ -79,6 +79,46 @@ def keep_knots_ordered(da, P, knots, dknots, a_t):
     return da * jnp.minimum(1.0, jnp.min(limit)), P
 
 
+
+def path_rows(ev):
+    """The path constraints of an `Evaluation` flattened to rows, `(C (N q,), C_a (N q, np))`,
+    or None for a problem without them."""
+    if ev.C is None:
+        return None
+    return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
+
+
+def active_rows(ev, tol):
+    """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
+    that the projected gradient of a KKT point has to be orthogonal to."""
+    rows = path_rows(ev)
+    if rows is None:
+        return ev.H
+    C, C_a = rows
+    return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
+
+
+def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, seen, rounds):
+    """Inequalities C + C_a d <= 0 the appendix-C way, one row per round: the row the
+    current `d` would violate most (above `threshold`, not yet `seen`) is observed at its
+    boundary, C_a d = -C with noise `r`, by the same rank-one update (a primal active-set
+    QP). A row (nearly) dependent on those already observed (its variance left by them below
+    `dependence` x its prior variance `prior_var`: neighbouring grid points) is skipped: it
+    would add no freedom, only ill-conditioned gains. Returns `(d, P, active)`."""
+
+    def add_worst(carry, _):
+        d, P, active, seen = carry
+        v = jnp.where(seen, -jnp.inf, C + C_a @ d)
+        j = jnp.argmax(v)
+        h = C_a[j]
+        wanted = v[j] > threshold
+        add = wanted & (h @ P @ h > dependence * prior_var[j])
+        d, P, _ = sequential_update(d, P, h[None], -C[j][None], r[j][None], active=add[None])
+        return (d, P, active.at[j].set(active[j] | add), seen.at[j].set(seen[j] | wanted)), None
+
+    (d, P, active, _), _ = lax.scan(add_worst, (d, P, active, seen), None, length=rounds)
+    return d, P, active
+
 def batch_update(da, P, H, z, r):
     """The same estimate by the batch formula (for tests and reference only)."""
     S = H @ P @ H.T + jnp.diag(r)

@@ -37,6 +37,14 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
   e_m = 1e-10); [4.26, 4.48] (negligible step) end the search as STALLED when [3.62] fails.
   The initial-constraint checks [4.10-4.11, 4.22-4.23] have nothing to check (I(a) is
   empty here), and [4.24-4.25] is exact for G = tf (linear in a).
+* Path constraints C(t, x, u) <= 0 (not in the thesis; our extension, the appendix-C way,
+  as in `KalmanSQP`): after the terminal observations, the grid point the increment would
+  violate most is observed at its boundary, C_a Da = -C, one point per round (skipping points
+  nearly dependent on those observed), until no predicted violation is left. Every check
+  that the thesis makes on E (capture [4.9, 4.39], band [4.14, 4.43], the quadratic models
+  [4.40, 4.44]) runs on the error vector [E; max(C, 0)]; the adaptation tests [B.2, B.5] and
+  the change cap [4.27] stay on E; the projected gradient [3.62] is taken against H and the
+  rows of the points with C >= -e_a.
 * Convergence in the minimum search: the projected gradient |V G_a| [3.62] below
   `max(gtol, e_a) (1 + |G|)` (a loose stage needs no tighter stationarity than its band).
   MAXREJ consecutive rejections or a negligible step [4.26, 4.48] without that test
@@ -50,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._kalman import keep_knots_ordered, sequential_update
+from ._kalman import active_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._solve import AbstractSolver
@@ -77,6 +85,24 @@ class _State(eqx.Module):
     done: jax.Array
     status: Status
     history: History
+
+
+def _values(ev: Evaluation):
+    """[E; C (flattened)]: the terminal constraints and the path constraints on the grid."""
+    rows = path_rows(ev)
+    return ev.E if rows is None else jnp.concatenate([ev.E, rows[0]])
+
+
+def _rows(ev: Evaluation):
+    """d`_values`/da: [H; C_a]."""
+    rows = path_rows(ev)
+    return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
+
+
+def _errors(ev: Evaluation, values):
+    """The error vector of constraint values [E; C]: E and max(C, 0) (met: zero)."""
+    m = ev.E.shape[0]
+    return values if values.shape[0] == m else jnp.concatenate([values[:m], jnp.maximum(values[m:], 0.0)])
 
 
 def _projected_gradient(G_a, H):
@@ -188,6 +214,14 @@ class KalmanSearch(AbstractSolver):
         # absorbed correction by at most 1e-14 of itself).
         r_obs = jnp.maximum(r, 1e-14 * (q - r))
         da, P1, _ = sequential_update(prior, P, H, z, r_obs)
+        rows = path_rows(ev)
+        if rows is not None:  # path constraints: predicted violations observed at their boundary
+            C, C_a = rows
+            prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
+            none = jnp.zeros(C.shape, bool)
+            da, P1, _ = observe_worst(
+                da, P1, C, C_a, jnp.maximum(r, 1e-14 * prior_var), prior_var, 1e-4, 0.0, none, none, da.shape[0]
+            )
         da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t)  # appendix C
         return da2, P2, s_bar
 
@@ -196,13 +230,14 @@ class KalmanSearch(AbstractSolver):
         (capture: [4.9]; minimum search: [4.14], [4.19]); then cap the predicted change of
         the constraints [4.27-4.28]. Returns (da, rho, beta, beta_p, stationary)."""
         E, G_a = ev.E, ev.G_a
-        nE = jnp.linalg.norm(E)
+        err_abs = jnp.abs(_errors(ev, _values(ev)))
+        nE = jnp.linalg.norm(err_abs)
 
         def attempt(rho, beta, beta_p):
             da, P1, s_bar = self._increment(ev, rho, beta, beta_p, phase, knots, dknots)
-            E_lin = E + ev.H @ da
-            capture_ok = jnp.all(jnp.abs(E_lin) <= jnp.abs(E) + 10.0 * self.e_m) & (jnp.linalg.norm(E_lin) < nE)
-            band_ok = jnp.all(jnp.abs(E_lin) <= self.f_ea * e_a)  # [4.14]
+            err_lin = _errors(ev, _values(ev) + _rows(ev) @ da)  # [E; max(C, 0)], linearized
+            capture_ok = jnp.all(jnp.abs(err_lin) <= err_abs + 10.0 * self.e_m) & (jnp.linalg.norm(err_lin) < nE)
+            band_ok = jnp.all(jnp.abs(err_lin) <= self.f_ea * e_a)  # [4.14]
             descent_ok = G_a @ da < 0.0  # [4.19]
             ok = jnp.where(phase == 0, capture_ok, band_ok & descent_ok)
             return da, s_bar, ok, band_ok, descent_ok
@@ -257,11 +292,6 @@ class KalmanSearch(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
-        if problem.path is not None:
-            raise ValueError(
-                f"KalmanSearch does not handle path constraints (problem {problem.name!r} has "
-                f"{problem.path_names}); use jt.KalmanSQP()."
-            )
         ev = evaluate_restricted(problem, control, a0, simulator, self.method)
         f = jnp.float64
         hist = History.empty(max_steps)
@@ -273,7 +303,7 @@ class KalmanSearch(AbstractSolver):
             rho=jnp.asarray(self.rho, f),
             beta=jnp.asarray(self.beta, f),
             beta_p=jnp.asarray(self.beta_p, f),
-            phase=jnp.where(jnp.max(jnp.abs(ev.E)) <= e_a0, 1, 0).astype(jnp.int32),
+            phase=jnp.where(jnp.max(jnp.abs(_errors(ev, _values(ev)))) <= e_a0, 1, 0).astype(jnp.int32),
             e_a=e_a0,
             da_pending=jnp.zeros_like(a0),
             has_pending=jnp.array(False),
@@ -302,7 +332,9 @@ class KalmanSearch(AbstractSolver):
         # integrate the candidate (one integration with sensitivities)
         cand = evaluate_restricted(problem, control, a + da, simulator, self.method)
         finite = cand.status == Status.SUCCESS
-        E, E_star, E_lin = ev.E, cand.E, ev.E + ev.H @ da
+        # the checks on the error vector [E; max(C, 0)], its models on the raw values
+        y, y_star, y_lin = _values(ev), _values(cand), _values(ev) + _rows(ev) @ da
+        E, E_star, E_lin = _errors(ev, y), _errors(ev, y_star), _errors(ev, y_lin)
         G, G_star, dG_lin = ev.G, cand.G, ev.G_a @ da
         nE = jnp.linalg.norm(E)
         band = self.f_ea * e_a
@@ -313,11 +345,14 @@ class KalmanSearch(AbstractSolver):
         accept = finite & jnp.where(phase == 0, capture_ok, min_ok)
 
         # shrink factor from the quadratic models [4.40], [4.44], [4.47]
+        def model(al):
+            return _errors(ev, y + al * (y_lin - y) + al**2 * (y_star - y_lin))
+
         def capture_model(al):
-            return jnp.linalg.norm(E + al * (E_lin - E) + al**2 * (E_star - E_lin)) < nE
+            return jnp.linalg.norm(model(al)) < nE
 
         def min_model(al):
-            e_ok = jnp.all(jnp.abs(E + al * (E_lin - E) + al**2 * (E_star - E_lin)) <= band)
+            e_ok = jnp.all(jnp.abs(model(al)) <= band)
             g_ok = G + al * dG_lin + al**2 * (G_star - G - dG_lin) < G
             return e_ok & g_ok
 
@@ -325,7 +360,8 @@ class KalmanSearch(AbstractSolver):
         alpha = jnp.where(phase == 0, _largest_alpha(capture_model, fallback), _largest_alpha(min_model, fallback))
         alpha = jnp.where(finite, jnp.maximum(alpha, self.min_shrink), 0.25)
 
-        # adaptation after acceptance [B.1, B.2, B.5]
+        # adaptation after acceptance [B.1, B.2, B.5] (on E alone)
+        E, E_star, E_lin = ev.E, cand.E, ev.E + ev.H @ da
         nonlin_E = jnp.abs(E_star - E_lin)
         lin_capture = jnp.linalg.norm(E_star - E_lin) < self.linearity_ratio * jnp.linalg.norm(E_lin - E)
         lin_min = (jnp.abs(G_star - G - dG_lin) < self.linearity_ratio * jnp.abs(dG_lin)) & jnp.all(
@@ -341,12 +377,12 @@ class KalmanSearch(AbstractSolver):
         # the new current point
         new_a = jnp.where(accept, a + da, a)
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
-        maxE = jnp.max(jnp.abs(new_ev.E))
+        maxE = jnp.max(jnp.abs(_errors(new_ev, _values(new_ev))))
         new_phase = jnp.where(accept & (phase == 0) & (maxE <= e_a), 1, phase).astype(jnp.int32)
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
-        pg = _projected_gradient(new_ev.G_a, new_ev.H)
+        pg = _projected_gradient(new_ev.G_a, active_rows(new_ev, e_a))
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
         converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)
@@ -419,7 +455,7 @@ class KalmanSearch(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=_projected_gradient(state.ev.G_a, state.ev.H),
+            projected_gradient=_projected_gradient(state.ev.G_a, active_rows(state.ev, state.e_a)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

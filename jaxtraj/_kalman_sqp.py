@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import keep_knots_ordered, sequential_update
+from ._kalman import active_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
@@ -131,25 +131,19 @@ def _covariance(B):
 def _multipliers(ev: Evaluation):
     """Least-squares multipliers of E (H^T lambda ~ -G_a); zero for the path rows."""
     lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-    rows = _path_rows(ev)
+    rows = path_rows(ev)
     return lam if rows is None else jnp.concatenate([lam, jnp.zeros_like(rows[0])])
 
 
 def _constraint_rows(ev: Evaluation):
     """[H; C_a rows]: the Jacobian of all constraints, multipliers `lam` = [lambda; nu]."""
-    rows = _path_rows(ev)
+    rows = path_rows(ev)
     return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
 
 
 def _lagrangian_gradient(ev: Evaluation, lam):
     return ev.G_a + _constraint_rows(ev).T @ lam
 
-
-def _path_rows(ev: Evaluation):
-    """Path constraints flattened to rows: `(C (N q,), C_a (N q, np))`, or None."""
-    if ev.C is None:
-        return None
-    return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
 
 
 def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
@@ -171,18 +165,9 @@ def _merit_value(G, E, C, lam, mu):
 
 
 def _merit(ev: Evaluation, lam, mu):
-    rows = _path_rows(ev)
+    rows = path_rows(ev)
     return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
 
-
-def _active_rows(ev: Evaluation, tol):
-    """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
-    that the projected gradient of a KKT point has to be orthogonal to."""
-    rows = _path_rows(ev)
-    if rows is None:
-        return ev.H
-    C, C_a = rows
-    return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
 def _follow_maximum(active, C, tol):
@@ -333,7 +318,7 @@ class KalmanSQP(AbstractSolver):
         # diagonal h P h^T is not small (measured 8e-7 = 1.5 |E| on case 7 near its optimum,
         # cond B 2e7); one pass brings it to 1e-13.
         d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
-        rows, m = _path_rows(ev), ev.E.shape[0]
+        rows, m = path_rows(ev), ev.E.shape[0]
         if rows is not None:
             # Path inequalities C + C_a d <= 0 on the grid points, the appendix-C way: the
             # points of the active set become observations C_a d = -C (the boundary),
@@ -362,21 +347,13 @@ class KalmanSQP(AbstractSolver):
             # only ill-conditioned gains and multipliers.
             threshold = 0.01 * self.ctol
 
-            def add_worst(carry, _):
-                d, P2, active, seen = carry
-                v = jnp.where(seen, -jnp.inf, C + C_a @ d)
-                j = jnp.argmax(v)
-                h = C_a[j]
-                wanted = v[j] > threshold
-                add = wanted & (h @ P2 @ h > self.path_dependence * prior_var[j])
-                d, P2, _ = sequential_update(d, P2, h[None], -C[j][None], r_c[j][None], active=add[None])
-                return (d, P2, active.at[j].set(active[j] | add), seen.at[j].set(seen[j] | wanted)), None
-
             def solve_active(warm):
                 d, _ = filtered(warm)
                 active = warm & (self._stationary_multipliers(ev, B, d, warm)[m:] >= 0)
                 d, P2 = filtered(active)
-                (d, P2, active, _), _ = lax.scan(add_worst, (d, P2, active, active), None, length=d.shape[0])
+                d, P2, active = observe_worst(
+                    d, P2, C, C_a, r_c, prior_var, self.path_dependence, threshold, active, active, d.shape[0]
+                )
                 return d, P2, active, jnp.max(C + C_a @ d)
 
             # With the warm start, a violated row can be left out as dependent on a warm row
@@ -397,7 +374,7 @@ class KalmanSQP(AbstractSolver):
     @staticmethod
     def _stationary_multipliers(ev, B, d, active):
         """Least-squares solution of [H; C_a(active)]^T lam = -(G_a + B d)."""
-        A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], _path_rows(ev)[1], 0.0)])
+        A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], path_rows(ev)[1], 0.0)])
         return jnp.linalg.lstsq(A.T, -(ev.G_a + B @ d))[0]
 
     def _correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
@@ -414,7 +391,7 @@ class KalmanSQP(AbstractSolver):
     def _line_search_start(self, ev, lam, mu, B, d, lam_qp):
         """Penalty update and the merit's value and slope at alpha = 0."""
         dlam = lam_qp - lam
-        rows = _path_rows(ev)
+        rows = path_rows(ev)
         C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
         Gd, Hd = ev.G_a @ d, ev.H @ d
 
@@ -547,7 +524,7 @@ class KalmanSQP(AbstractSolver):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E))
-        pg = _projected_gradient(new_ev.G_a, _active_rows(new_ev, self.path_active))
+        pg = _projected_gradient(new_ev.G_a, active_rows(new_ev, self.path_active))
         feasible = (maxE <= self.ctol) & (_max_path(new_ev) <= self.ctol)
         converged = feasible & (pg <= self.gtol * (1.0 + jnp.abs(new_ev.G)))
         negligible = jnp.linalg.norm(step_taken) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
@@ -605,7 +582,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=_projected_gradient(state.ev.G_a, _active_rows(state.ev, self.path_active)),
+            projected_gradient=_projected_gradient(state.ev.G_a, active_rows(state.ev, self.path_active)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -8,6 +8,13 @@ Signatures follow diffrax's ordering (time first, `args` last):
 * `objective(tf, xf, args) -> G`, a scalar (default: `tf`, minimum time);
 * `path(t, x, u, args) -> C`, shape `(q,)`: path inequality constraints C <= 0 (optional).
 
+Path constraints are imposed on the points of the simulator's integration grid (a finer
+check is up to the problem: e.g. `problems.attitude.cone_margin`), by every solver:
+`KalmanSQP` and `KalmanSearch` observe the grid points of an active set (appendix-C style),
+`AugmentedLagrangian` carries a multiplier per grid point, and the SciPy SLSQP / IPOPT
+baselines impose them as inequalities. Solutions report the worst value and its time
+(`max_path_constraint`, `max_path_time`).
+
 Physical constants go in `args` (a pytree of arrays), not in closures, so that changing them
 does not recompile anything and they can be traced or vmapped over.
 """
