@@ -33,9 +33,9 @@ widened by 0.001 deg (`cone_backoff_deg`), so it holds between grid points too:
   agree to 4e-11), 234 / 145 iterations (its first steps overshoot to large energies), the same
   cone margin. From its own unconstrained optimum it stalls at 2.2652002 (1.9e-7 inside the
   widened cone on its grid, still outside the 50 deg one), and from the AugmentedLagrangian
-  optimum it stalls after one step 2.8e-5 (cosine units) inside, -1.1e-3 deg: started at a
-  converged point its active set, rebuilt from one QP step, misses the touching point.
-  These outcomes are reported as they are.
+  optimum (its touching points made active by the initial multipliers) it stays there
+  (quaternion, 3 integrations) or slides to the same 2.2652002 point (Euler), STALLED: the
+  line search finds no merit decrease. These outcomes are reported as they are.
 
 Output: a Markdown table on stdout and in `OUT/results.md`, `OUT/results.json` (every row with
 its parameters), `OUT/sky_path.png` (the boresight's path around the sun: stereographic

@@ -128,11 +128,14 @@ def _covariance(B):
     return 0.5 * (P + P.T)
 
 
-def _multipliers(ev: Evaluation):
-    """Least-squares multipliers of E (H^T lambda ~ -G_a); zero for the path rows."""
-    lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-    rows = path_rows(ev)
-    return lam if rows is None else jnp.concatenate([lam, jnp.zeros_like(rows[0])])
+def _multipliers(ev: Evaluation, path_active):
+    """Least-squares multipliers of E and of the path points with C >= -`path_active`
+    ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
+    converged point, the first active set is the touching one."""
+    A = active_rows(ev, path_active)
+    lam = jnp.linalg.lstsq(A.T, -ev.G_a)[0]
+    m = ev.E.shape[0]
+    return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
 
 
 def _constraint_rows(ev: Evaluation):
@@ -419,7 +422,7 @@ class KalmanSQP(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
-        lam = _multipliers(self._restricted(problem, control, a0, simulator))
+        lam = _multipliers(self._restricted(problem, control, a0, simulator), self.path_active)
         ev, B = self._hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
         hist = History.empty(max_steps)
