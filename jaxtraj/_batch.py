@@ -18,7 +18,7 @@ How a batch runs:
   step limit) comes back with its failure `status` and leaves every other result unchanged.
   Every lane does the work of every step, though: a `lax.cond` on a per-start predicate runs
   both branches. On CPU, XLA's vmapped kernels gain too little over single ones for that
-  (benchmarks/batch.py: lanes=8 or 32 give 0.9-1.15x the loop, lanes=1 1.2x), so the
+  (benchmarks/batch.py: lanes=8 or 32 give 0.75-1.46x the loop, lanes=1 1.22-1.39x), so the
   default there is `lanes=1`; on accelerators it is the whole per-device slice.
 * With `out=FOLDER` each finished chunk is written atomically (`chunk_00000.npz`, ...) next
   to `manifest.json` (number of starts, chunk size, and SHA-256 fingerprints of `a0s` and of
@@ -133,11 +133,12 @@ def _solve_queue(init1, step1, finish1, a0s, max_steps, lanes):
     _, static = eqx.partition(shapes, lambda x: isinstance(x, jax.ShapeDtypeStruct))
     init = jax.vmap(lambda a: eqx.partition(init1(a), eqx.is_array)[0])
     step = jax.vmap(lambda s: eqx.partition(step1(eqx.combine(s, static)), eqx.is_array)[0])
-    def finish1_clean(s):
+
+    def finish_one(s):  # the history records past `steps` (see `body`) cleared first
         s = eqx.combine(s, static)
         return finish1(eqx.tree_at(lambda x: x.history, s, s.history.clear_from(s.num_steps)))
 
-    finish = jax.vmap(finish1_clean)
+    finish = jax.vmap(finish_one)
     finished = jax.vmap(lambda s: _finished(eqx.combine(s, static), max_steps))
 
     def write(out, rows, states):
