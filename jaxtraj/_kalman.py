@@ -88,6 +88,12 @@ def path_rows(ev):
     return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
 
 
+def constraint_rows(ev):
+    """[H; C_a]: the Jacobian of all constraints, terminal and path (flattened)."""
+    rows = path_rows(ev)
+    return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
+
+
 def active_rows(ev, tol):
     """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
     that the projected gradient of a KKT point has to be orthogonal to."""

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._kalman import active_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
+from ._kalman import active_rows, constraint_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._solve import AbstractSolver
@@ -92,11 +92,6 @@ def _values(ev: Evaluation):
     rows = path_rows(ev)
     return ev.E if rows is None else jnp.concatenate([ev.E, rows[0]])
 
-
-def _rows(ev: Evaluation):
-    """d`_values`/da: [H; C_a]."""
-    rows = path_rows(ev)
-    return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
 
 
 def _errors(ev: Evaluation, values):
@@ -235,7 +230,7 @@ class KalmanSearch(AbstractSolver):
 
         def attempt(rho, beta, beta_p):
             da, P1, s_bar = self._increment(ev, rho, beta, beta_p, phase, knots, dknots)
-            err_lin = _errors(ev, _values(ev) + _rows(ev) @ da)  # [E; max(C, 0)], linearized
+            err_lin = _errors(ev, _values(ev) + constraint_rows(ev) @ da)  # [E; max(C, 0)], linearized
             capture_ok = jnp.all(jnp.abs(err_lin) <= err_abs + 10.0 * self.e_m) & (jnp.linalg.norm(err_lin) < nE)
             band_ok = jnp.all(jnp.abs(err_lin) <= self.f_ea * e_a)  # [4.14]
             descent_ok = G_a @ da < 0.0  # [4.19]
@@ -333,7 +328,7 @@ class KalmanSearch(AbstractSolver):
         cand = evaluate_restricted(problem, control, a + da, simulator, self.method)
         finite = cand.status == Status.SUCCESS
         # the checks on the error vector [E; max(C, 0)], its models on the raw values
-        y, y_star, y_lin = _values(ev), _values(cand), _values(ev) + _rows(ev) @ da
+        y, y_star, y_lin = _values(ev), _values(cand), _values(ev) + constraint_rows(ev) @ da
         E, E_star, E_lin = _errors(ev, y), _errors(ev, y_star), _errors(ev, y_lin)
         G, G_star, dG_lin = ev.G, cand.G, ev.G_a @ da
         nE = jnp.linalg.norm(E)

@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import active_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
+from ._kalman import active_rows, constraint_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
@@ -138,14 +138,9 @@ def _multipliers(ev: Evaluation, path_active):
     return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
 
 
-def _constraint_rows(ev: Evaluation):
-    """[H; C_a rows]: the Jacobian of all constraints, multipliers `lam` = [lambda; nu]."""
-    rows = path_rows(ev)
-    return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
-
 
 def _lagrangian_gradient(ev: Evaluation, lam):
-    return ev.G_a + _constraint_rows(ev).T @ lam
+    return ev.G_a + constraint_rows(ev).T @ lam
 
 
 

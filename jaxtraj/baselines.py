@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from ._kalman import path_rows
 from ._problem import Problem
 from ._sensitivity import _check_method, _evaluate
 from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
@@ -81,14 +82,15 @@ class _CachedEvaluation:
         key = a.tobytes()
         if key != self._key:
             ev = self._fn(jnp.asarray(a))
+            path = path_rows(ev)
             self._value = {
                 "tf": float(ev.tf),
                 "G": float(ev.G),
                 "G_a": np.asarray(ev.G_a, dtype=np.float64),
                 "E": np.asarray(ev.E, dtype=np.float64),
                 "H": np.asarray(ev.H, dtype=np.float64),
-                "C": np.zeros(0) if ev.C is None else np.asarray(ev.C, dtype=np.float64).reshape(-1),
-                "C_a": np.zeros((0, a.size)) if ev.C is None else np.asarray(ev.C_a, dtype=np.float64).reshape(-1, a.size),
+                "C": np.asarray(path[0], dtype=np.float64) if path else np.zeros(0),
+                "C_a": np.asarray(path[1], dtype=np.float64) if path else np.zeros((0, a.size)),
                 "ok": bool(ev.status == Status.SUCCESS),
                 "status": ev.status,
             }
@@ -96,6 +98,15 @@ class _CachedEvaluation:
             self.count += 1
             self.history.append((self._value["G"], float(np.max(np.abs(self._value["E"]), initial=0.0))))
         return self._value
+
+
+def _prepare(problem, control, a0, simulator, method):
+    """Checked inputs and the cached evaluation shared by both baselines (default RK4())."""
+    simulator = RK4() if simulator is None else simulator
+    _check_method(method)
+    a0 = check_inputs(problem, control, a0)
+    check_simulator(simulator)
+    return a0, _CachedEvaluation(problem, control, simulator, method)
 
 
 def _knot_gap_constraint(control, a0):
@@ -146,13 +157,7 @@ def solve_slsqp(
     **Raises:** `ValueError` for invalid inputs (as `jt.evaluate`).
     """
     start = time.perf_counter()
-    if simulator is None:
-        simulator = RK4()
-    _check_method(method)
-    a0 = check_inputs(problem, control, a0)
-    check_simulator(simulator)
-
-    ev = _CachedEvaluation(problem, control, simulator, method)
+    a0, ev = _prepare(problem, control, a0, simulator, method)
     constraints = [
         {"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]},
         _knot_gap_constraint(control, a0),
@@ -270,13 +275,7 @@ def solve_ipopt(
     except ImportError as err:  # pragma: no cover - exercised only without the extra
         raise ImportError("solve_ipopt needs CasADi: `pip install jaxtraj[bench]` (or `pip install casadi`).") from err
     start = time.perf_counter()
-    if simulator is None:
-        simulator = RK4()
-    _check_method(method)
-    a0 = check_inputs(problem, control, a0)
-    check_simulator(simulator)
-
-    ev = _CachedEvaluation(problem, control, simulator, method)
+    a0, ev = _prepare(problem, control, a0, simulator, method)
     n, m = int(a0.shape[0]), problem.num_constraints
     p = ev(a0)["C"].size  # path constraint rows (grid points x components)
     gaps = _knot_gap_constraint(control, a0)
