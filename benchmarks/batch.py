@@ -64,14 +64,14 @@ def throughput():
           "together per device (default on CPU: 1, a compiled loop of single solves).")
     print()
     print("| N | loop [solves/s] | solve_batch default (lanes=1) [solves/s] | ratio | lanes=8 | ratio "
-          "| lanes=32 | ratio | success | mean / max steps |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| lanes=32 | ratio | lanes=64 | ratio | success | mean / max steps |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in (1, 16, 256, 1024):
         a0s = starts(n)
         loop = loop_rate(a0s[:LOOP_SUBSET])
         default, sols = batch_rate(a0s)
         cells = [f"{default:.1f}", f"{default / loop:.2f}x"]
-        for lanes in (8, 32):
+        for lanes in (8, 32, 64):
             if lanes > n:
                 cells += ["-", "-"]
                 continue

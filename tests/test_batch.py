@@ -388,3 +388,19 @@ def test_import_leaves_the_cpu_device_count_open():
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == "3"
+
+
+def test_import_sets_the_xla_cpu_option_xla_accepts():
+    """`import jaxtraj` raises XLA:CPU's small-while-loop threshold, and XLA accepts the option (it
+    aborts on an unknown flag); JAXTRAJ_NO_XLA_TUNING=1 leaves XLA_FLAGS alone."""
+    code = ("import os, jax.numpy as jnp, jaxtraj; print(float(jnp.sin(jnp.arange(3.0)).sum())); "
+            "print(os.environ.get('XLA_FLAGS', ''))")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAJ_NO_XLA_TUNING")}
+    for off in (False, True):
+        extra = {"JAXTRAJ_NO_XLA_TUNING": "1"} if off else {}
+        proc = subprocess.run([sys.executable, "-c", code], env={**env, **extra, "PYTHONPATH": REPO},
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        value, flags = proc.stdout.split("\n")[:2]
+        assert float(value) == pytest.approx(np.sin(1.0) + np.sin(2.0), rel=1e-15)
+        assert ("xla_cpu_small_while_loop_byte_threshold=1000000" in flags) is not off
