@@ -9,7 +9,8 @@ For every target, with the seed's control `SaturatedSpline(P, p)` (free segment 
   starts (constant pitch +-`--pitches` degrees, outwards for Mars and inwards for Venus and
   Mercury, times durations summing to `--tf-factors` x half of `ss.TF_BOX[target]`; the
   solver is not told the indirect answer); for reference `jt.KalmanSearch` (the thesis's
-  method with the sail tuning `ss.kalman_search_solver()`) from the same starts and SciPy's SLSQP (`jaxtraj.baselines.solve_slsqp`) from the 35 deg / factor 1 start;
+  method with the sail tuning `ss.kalman_search_solver()`) from the same starts and SciPy's
+  SLSQP (`jaxtraj.baselines.solve_slsqp`) from the 35 deg / factor 1 start;
 * (b) `jt.GreyWolf`, `jt.Whale` (linear and quadratic decay of a) and `jt.Dragonfly` on the
   seed's penalty functional (eq. 5, `ss.penalty_objective`, weights `ss.DEFAULT_WEIGHTS`)
   over the box `ss.box`, with the same P, p and simulator, over `--seeds` PRNG keys (vmapped),

@@ -79,7 +79,6 @@ def keep_knots_ordered(da, P, knots, dknots, a_t):
     return da * jnp.minimum(1.0, jnp.min(limit)), P
 
 
-
 def path_rows(ev):
     """The path constraints of an `Evaluation` flattened to rows, `(C (N q,), C_a (N q, np))`,
     or None for a problem without them."""
@@ -104,6 +103,12 @@ def active_rows(ev, tol):
     return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
+#: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already
+#: observed is below this fraction of its prior variance is skipped (KalmanSQP's
+#: `path_dependence`, KalmanSearch's fixed value).
+PATH_DEPENDENCE = 1e-4
+
+
 def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, seen, rounds):
     """Inequalities C + C_a d <= 0 the appendix-C way, one row per round: the row the
     current `d` would violate most (above `threshold`, not yet `seen`) is observed at its
@@ -124,6 +129,7 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
 
     (d, P, active, _), _ = lax.scan(add_worst, (d, P, active, seen), None, length=rounds)
     return d, P, active
+
 
 def batch_update(da, P, H, z, r):
     """The same estimate by the batch formula (for tests and reference only)."""

@@ -58,7 +58,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._kalman import active_rows, constraint_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
+from ._kalman import (
+    PATH_DEPENDENCE,
+    active_rows,
+    constraint_rows,
+    keep_knots_ordered,
+    observe_worst,
+    path_rows,
+    sequential_update,
+)
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._solve import AbstractSolver
@@ -91,7 +99,6 @@ def _values(ev: Evaluation):
     """[E; C (flattened)]: the terminal constraints and the path constraints on the grid."""
     rows = path_rows(ev)
     return ev.E if rows is None else jnp.concatenate([ev.E, rows[0]])
-
 
 
 def _errors(ev: Evaluation, values):
@@ -214,8 +221,9 @@ class KalmanSearch(AbstractSolver):
             C, C_a = rows
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
             none = jnp.zeros(C.shape, bool)
+            r_c = jnp.maximum(r, 1e-14 * prior_var)  # floored as r_obs
             da, P1, _ = observe_worst(
-                da, P1, C, C_a, jnp.maximum(r, 1e-14 * prior_var), prior_var, 1e-4, 0.0, none, none, da.shape[0]
+                da, P1, C, C_a, r_c, prior_var, PATH_DEPENDENCE, 0.0, none, none, da.shape[0]
             )
         da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t)  # appendix C
         return da2, P2, s_bar

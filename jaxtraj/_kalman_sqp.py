@@ -22,9 +22,9 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   iterations all seven reach the best known optima in 11-31 iterations (24, 28, 21, 11, 14,
   31, 27 with the second-order correction below), at a similar wall time. `hessian="exact"`:
   the exact Hessian at every candidate (one second-order integration per step: fewer
-  iterations, 12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is made positive definite by `convexify`
-  (B = nabla^2 L + c H^T H, which leaves the QP's solution unchanged, then lifted
-  eigenvalues where that is not enough).
+  iterations, 12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is
+  made positive definite by `convexify` (B = nabla^2 L + c H^T H, which leaves the QP's
+  solution unchanged, then lifted eigenvalues where that is not enough).
 * Step rule: backtracking line search on the augmented-Lagrangian merit function
   phi(a, lambda) = G + lambda^T E + mu/2 |E|^2 over (a + alpha d, lambda + alpha
   (lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit
@@ -37,8 +37,9 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   decrease, and the quaternion run STALLED at a projected gradient of 2e-4; with the reset
   both forms reach SUCCESS (234 / 145 iterations). Starting every direction from 0 did as
   well there and on Earth-Mars, but left the solar-sail Venus and Mars runs crawling at a
-  projected gradient of 6e-9 (tolerance 4.5e-9) instead of SUCCESS. Armijo factor `armijo`; a rejected alpha is replaced by the minimizer of the
-  quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5] alpha. Before that, a
+  projected gradient of 6e-9 (tolerance 4.5e-9) instead of SUCCESS. Armijo factor
+  `armijo`; a rejected alpha is replaced by the minimizer of the quadratic through phi(0),
+  phi'(0), phi(alpha), kept in [0.1, 0.5] alpha. Before that, a
   rejected *full* step is retried once with a second-order correction d + d_soc, H d_soc =
   -E(a + d) (the constraints' curvature along d; Nocedal & Wright sec. 15.4), the cheapest
   candidate in the long curved valleys of these problems: with it (and the monotone
@@ -72,7 +73,15 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import active_rows, constraint_rows, keep_knots_ordered, observe_worst, path_rows, sequential_update
+from ._kalman import (
+    PATH_DEPENDENCE,
+    active_rows,
+    constraint_rows,
+    keep_knots_ordered,
+    observe_worst,
+    path_rows,
+    sequential_update,
+)
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
@@ -138,10 +147,8 @@ def _multipliers(ev: Evaluation, path_active):
     return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
 
 
-
 def _lagrangian_gradient(ev: Evaluation, lam):
     return ev.G_a + constraint_rows(ev).T @ lam
-
 
 
 def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
@@ -165,7 +172,6 @@ def _merit_value(G, E, C, lam, mu):
 def _merit(ev: Evaluation, lam, mu):
     rows = path_rows(ev)
     return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
-
 
 
 def _follow_maximum(active, C, tol):
@@ -252,7 +258,7 @@ class KalmanSQP(AbstractSolver):
     path_active: float = 1e-6
     radius: float = 0.5
     mu_max: float = 1e8
-    path_dependence: float = 1e-4
+    path_dependence: float = PATH_DEPENDENCE
     method: str = "forward"
 
     def __check_init__(self):
@@ -457,8 +463,8 @@ class KalmanSQP(AbstractSolver):
             d_max = jnp.max(jnp.abs(d))
             capped = d_max > state.radius
             d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
-            # mu anew for every direction (from 0: see the module docs)
-            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)  # see the module docs
+            # the penalty carries over unless it ran past `mu_max` (see the module docs)
+            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
             return (d, *self._line_search_start(ev, lam, mu, B, d, lam_qp))
 
         # If B's step is no descent direction for the merit (B degenerated, or the knot
