@@ -4,7 +4,8 @@ forward-mode sensitivities) and the same published starting vectors.
 
 KalmanSQP is the default (`exact_iterations=3`: exact Lagrangian Hessians for the first three
 iterations, then BFGS); "pure BFGS" starts BFGS from a0's exact Hessian; "exact" uses exact
-Hessians throughout.
+Hessians throughout; "trust region" is the exact Hessian with the composite-step trust region
+(`globalization="trust-region"`).
 
 Per case and solver: final tf, max |E|, projected gradient, iterations, integrations, first
 call (compile + solve) and warm solve time (best of 3), and the warm-time ratio to KalmanSQP
@@ -70,6 +71,7 @@ def run_case(case):
         "KalmanSQP": jt.KalmanSQP(),
         "KalmanSQP pure BFGS": jt.KalmanSQP(exact_iterations=0),
         "KalmanSQP exact": jt.KalmanSQP(hessian="exact"),
+        "KalmanSQP trust region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
     }
     rows = {}
     for name, solver in solvers.items():

@@ -43,7 +43,8 @@ def _parser():
     g.add_argument("--control", help=f"control spec: {_CONTROLS}")
     s.add_argument("--solver", default="kalman",
                    help="kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
-                        "sqp-exact (KalmanSQP, exact Hessian)")
+                        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region; "
+                        "problems without path constraints)")
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
     s.add_argument("--monte-carlo", type=int, default=0, metavar="N",
@@ -93,7 +94,7 @@ def parse_control(spec):
         raise _UsageError(f"control spec {spec!r}: {e}") from None
 
 
-_SOLVERS = ("kalman", "sqp", "sqp-exact")
+_SOLVERS = ("kalman", "sqp", "sqp-exact", "sqp-tr")
 
 
 def _setup(problem_name, args):
@@ -211,6 +212,8 @@ def _solve(args):
         solver = jt.KalmanSQP()
     elif args.solver == "sqp-exact":
         solver = jt.KalmanSQP(hessian="exact")
+    elif args.solver == "sqp-tr":
+        solver = jt.KalmanSQP(hessian="exact", globalization="trust-region")
     sim = jt.RK4(args.steps)
     print(f"{args.problem} ({label}): {ctrl!r}, {ctrl.num_params} parameters, RK4({args.steps})", flush=True)
     print(f"compiling and solving {args.starts} start(s) ...", flush=True)

@@ -82,6 +82,7 @@ from ._kalman import (
     path_rows,
     sequential_update,
 )
+from . import _trust_region
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
@@ -234,8 +235,16 @@ class KalmanSQP(AbstractSolver):
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
     - `mu_max`: a merit penalty above this is not carried over to the next direction (see
       the module docs).
-    - `radius`: initial cap on a step's largest component |d_i| (parameter units); doubled
-      after every full step it limited, reset to the accepted length after a shortened one.
+    - `globalization`: `"line-search"` (the merit line search described in the module docs) or
+      `"trust-region"` (a composite-step trust region, `hessian="exact"` and problems without
+      path constraints only: see `jaxtraj._trust_region`; fewer iterations on every
+      Earth-Mars case).
+    - `radius`: line search: initial cap on a step's largest component |d_i| (parameter
+      units; default 0.5), doubled after every full step it limited, reset to the accepted
+      length after a shortened one. Trust region: initial radius of |d|_2 (default 1.0).
+    - `zeta`, `gap_floor`, `eta` (trust region): the normal step's share of the radius (0.8);
+      the fraction of a knot gap one step must leave (0.5); the least ratio of actual to
+      predicted merit decrease that accepts a step (1e-4).
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
       constraints are met to about this fraction of the innovation).
     - `path_active`: path points with C >= -`path_active` count as active constraints in
@@ -256,7 +265,11 @@ class KalmanSQP(AbstractSolver):
     r_rel: float = 1e-12
     exact_iterations: int = 3
     path_active: float = 1e-6
-    radius: float = 0.5
+    globalization: str = "line-search"
+    radius: float | None = None
+    zeta: float = 0.8
+    gap_floor: float = 0.5
+    eta: float = 1e-4
     mu_max: float = 1e8
     path_dependence: float = PATH_DEPENDENCE
     method: str = "forward"
@@ -266,6 +279,12 @@ class KalmanSQP(AbstractSolver):
             raise ValueError(f"KalmanSQP: `hessian` must be 'bfgs' or 'exact'; got {self.hessian!r}.")
         if self.method not in ("forward", "unit"):
             raise ValueError(f"KalmanSQP: `method` must be 'forward' or 'unit'; got {self.method!r}.")
+        if self.globalization not in ("line-search", "trust-region"):
+            raise ValueError(
+                f"KalmanSQP: `globalization` must be 'line-search' or 'trust-region'; got {self.globalization!r}."
+            )
+        if self.globalization == "trust-region" and self.hessian != "exact":
+            raise ValueError("KalmanSQP: `globalization='trust-region'` needs `hessian='exact'`.")
         if self.hessian == "exact" and self.method != "forward":
             raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
         checks = {
@@ -276,7 +295,10 @@ class KalmanSQP(AbstractSolver):
             "min_step": 0 < self.min_step < 1,
             "min_curvature": 0 < self.min_curvature < 1,
             "r_rel": 0 < self.r_rel < 1,
-            "radius": self.radius > 0,
+            "radius": self.radius is None or self.radius > 0,
+            "zeta": 0 < self.zeta < 1,
+            "gap_floor": 0 < self.gap_floor < 1,
+            "eta": 0 < self.eta < 0.25,
             "mu_max": self.mu_max > 0,
             "path_dependence": 0 < self.path_dependence < 1,
             "exact_iterations": isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
@@ -284,6 +306,12 @@ class KalmanSQP(AbstractSolver):
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"KalmanSQP: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+
+    @property
+    def initial_radius(self):
+        if self.radius is not None:
+            return self.radius
+        return 1.0 if self.globalization == "trust-region" else 0.5
 
     # ------------------------------------------------------------------ evaluations
 
@@ -423,6 +451,8 @@ class KalmanSQP(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
+        if self.globalization == "trust-region":
+            return _trust_region.init(self, problem, control, a0, simulator, max_steps)
         lam = _multipliers(self._restricted(problem, control, a0, simulator), self.path_active)
         ev, B = self._hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
@@ -444,7 +474,7 @@ class KalmanSQP(AbstractSolver):
             soc=jnp.array(False),
             d_soc=zero,
             alpha_bt=jnp.asarray(1.0, f),
-            radius=jnp.asarray(self.radius, f),
+            radius=jnp.asarray(self.initial_radius, f),
             num_iterations=jnp.array(0, jnp.int32),
             num_integrations=jnp.array(2, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
@@ -454,6 +484,8 @@ class KalmanSQP(AbstractSolver):
         )
 
     def step(self, problem, control, simulator, state: _State):
+        if self.globalization == "trust-region":
+            return _trust_region.step(self, problem, control, simulator, state)
         ev, a, lam = state.ev, state.a, state.lam
         # A fresh direction (cheap: no integration); kept only when no search is pending.
         knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
@@ -574,6 +606,14 @@ class KalmanSQP(AbstractSolver):
         )
 
     def progress(self, state: _State):
+        if self.globalization == "trust-region":
+            return {
+                "iterations": state.num_iterations,
+                "objective": state.ev.G,
+                "max|E|": jnp.max(jnp.abs(state.ev.E)),
+                "radius": state.radius,
+                "nu": state.nu,
+            }
         return {
             "iterations": state.num_iterations,
             "objective": state.ev.G,

@@ -105,9 +105,10 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     assert abs(summary["objective"] - 6.0) < 1e-6  # analytic optimum of the min-energy problem
 
 
-def test_solve_with_kalman_sqp(tmp_path):
+@pytest.mark.parametrize("solver", ["sqp", "sqp-tr"])
+def test_solve_with_kalman_sqp(tmp_path, solver):
     out = tmp_path / "sqp"
-    r = run("solve", "min-energy", "--control", "linear:3", "--solver", "sqp", "--steps", "4", "--no-plot",
+    r = run("solve", "min-energy", "--control", "linear:3", "--solver", solver, "--steps", "4", "--no-plot",
             "--out", str(out), tmp_path=tmp_path)
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
