@@ -10,7 +10,8 @@ Hessians throughout; "trust region" is the exact Hessian with the composite-step
 Per case and solver: final tf, max |E|, projected gradient, iterations, integrations, first
 call (compile + solve) and warm solve time (best of 3), and the warm-time ratio to KalmanSQP
 measured in the same run. Also writes `benchmarks/convergence_case5.png`: max |E| and
-|tf - tf*| against the number of integrations for every solver on case 5.
+|tf - tf*| against the number of candidate evaluations for every solver on case 5 (the trust
+region also spends one Hessian pass per accepted step, counted in the table's integrations).
 
 CasADi + IPOPT (`jaxtraj.baselines.solve_ipopt`, limited-memory Hessians, on the same compiled
 evaluation) is included when CasADi is installed (`pip install -e '.[bench]'`).
@@ -109,8 +110,8 @@ def plot_convergence(rows, tf_star, path):
         n = np.arange(1, len(G) + 1)
         ax1.semilogy(n, np.maximum(maxE, 1e-16), label=name)
         ax2.semilogy(n, np.maximum(np.abs(G - tf_star), 1e-16), label=name)
-    ax1.set(xlabel="integrations", ylabel="max |E|", title="constraint error (case 5)")
-    ax2.set(xlabel="integrations", ylabel="|tf - tf*|", title=f"objective error, tf* = {tf_star:.8f}")
+    ax1.set(xlabel="candidate evaluations", ylabel="max |E|", title="constraint error (case 5)")
+    ax2.set(xlabel="candidate evaluations", ylabel="|tf - tf*|", title=f"objective error, tf* = {tf_star:.8f}")
     for ax in (ax1, ax2):
         ax.set_xscale("log")
         ax.grid(True, which="both", alpha=0.3)
