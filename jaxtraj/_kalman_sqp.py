@@ -607,19 +607,14 @@ class KalmanSQP(AbstractSolver):
 
     def progress(self, state: _State):
         if self.globalization == "trust-region":
-            return {
-                "iterations": state.num_iterations,
-                "objective": state.ev.G,
-                "max|E|": jnp.max(jnp.abs(state.ev.E)),
-                "radius": state.radius,
-                "nu": state.nu,
-            }
+            steps = {"radius": state.radius, "nu": state.nu}
+        else:
+            steps = {"alpha": state.alpha, "mu": state.mu}
         return {
             "iterations": state.num_iterations,
             "objective": state.ev.G,
             "max|E|": jnp.max(jnp.abs(state.ev.E)),
-            "alpha": state.alpha,
-            "mu": state.mu,
+            **steps,
         }
 
     def postprocess(self, problem, control, simulator, state: _State) -> Solution:

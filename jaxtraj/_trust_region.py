@@ -28,15 +28,16 @@ the predicted decrease is at least 0.3 nu/2 (|E|^2 - |E + H d|^2), never lowered
 with ratio >= `eta` is accepted; a rejected one is first retried with a second-order
 correction (the minimum-norm step onto H d_c = -E(a + d), by the same filter); the radius
 doubles after a good step on the boundary (ratio > 0.75), halves to |d| / 2 after a poor one
-(ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate: first-order
-sensitivities, then the Hessian of the Lagrangian with the candidate's own least-squares
-multipliers (`lagrangian_hessian`).
+(ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate with
+first-order sensitivities; an accepted one that does not end the solve is integrated once more
+for the Hessian of the Lagrangian with its own least-squares multipliers (`lagrangian_hessian`;
+both count in `integrations`).
 
 Measured on the seven Earth-Mars cases (benchmarks/compare_solvers.py, thesis 11, 15, 12, 14,
-17, 15, 19): 10, 9, 8, 7, 8, 10, 15 iterations to max |E| <= 1e-10 and a projected gradient
+17, 15, 19): 10, 9, 8, 7, 8, 8, 13 iterations to max |E| <= 1e-10 and a projected gradient
 <= 1e-9 (1 + |G|), against 12, 28, 16, 8, 9, 18, 16 with the exact Hessian and the line search.
-With BFGS or SR1 instead of the exact Hessian the same trust region needed 120-1000 iterations
-in all (a prototype, session 6), hence exact Hessians only.
+With damped BFGS or SR1 instead of the exact Hessian the same trust region needed 172-1012
+iterations in all (a prototype, session 6; benchmarks/RESULTS.md), hence exact Hessians only.
 """
 
 import equinox as eqx

@@ -328,6 +328,19 @@ def test_bad_settings(kwargs):
         jt.KalmanSQP(**kwargs)
 
 
+def test_trust_region_batch_equals_single_solves():
+    """Under vmap (where the Hessian's lax.cond runs both branches) each start ends where its
+    single solve does; a NaN start fails alone."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    starts = jnp.stack([a0, a0.at[0].set(jnp.nan), a0 * 1.01])
+    sols = jt.solve_batch(prob, ctrl, starts, TRUST_REGION, simulator=jt.RK4(30), max_steps=100)
+    np.testing.assert_array_equal(sols.status == jt.Status.SUCCESS, [True, False, True])
+    for k in (0, 2):
+        single = jt.solve(prob, ctrl, starts[k], TRUST_REGION, simulator=jt.RK4(30), max_steps=100)
+        assert int(sols.iterations[k]) == int(single.iterations)
+        np.testing.assert_allclose(sols.params[k], single.params, rtol=1e-10, atol=1e-10)
+
+
 def test_trust_region_refuses_path_constraints():
     prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
     ctrl = jt.controls.PiecewiseLinear(4)
