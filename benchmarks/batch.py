@@ -9,9 +9,9 @@ machine is shared). The loop is timed on the first min(N, 64) starts and extrapo
 Compilation is excluded from both (warm-up calls: for solve_batch on N NaN starts, which have
 the same shapes and end at once).
 
-Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling]` (all four by
-default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the N = 10,000
-runs.
+Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers]` (the first
+four by default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the N = 10,000
+runs; `solvers` compares KalmanSearch, KalmanSQP and its trust region under solve_batch (N = 256).
 """
 
 import os
@@ -40,20 +40,20 @@ def starts(n, seed=0):
     return np.asarray(random_starts(PROB, CTRL, jax.random.key(seed), n, A0, SPREAD))
 
 
-def loop_rate(a0s):
+def loop_rate(a0s, solver=SOLVER):
     """Solves per second of a Python loop over jitted single solves (compiled beforehand)."""
-    jax.block_until_ready(jt.solve(PROB, CTRL, a0s[0], SOLVER).params)
+    jax.block_until_ready(jt.solve(PROB, CTRL, a0s[0], solver).params)
     t0 = time.perf_counter()
     for a in a0s:
-        jax.block_until_ready(jt.solve(PROB, CTRL, a, SOLVER).params)
+        jax.block_until_ready(jt.solve(PROB, CTRL, a, solver).params)
     return len(a0s) / (time.perf_counter() - t0)
 
 
-def batch_rate(a0s, **kw):
+def batch_rate(a0s, solver=SOLVER, **kw):
     """Solves per second of solve_batch (compiled beforehand on NaN starts)."""
-    solve_batch(PROB, CTRL, np.full_like(a0s, np.nan), SOLVER, progress=False, **kw)
+    solve_batch(PROB, CTRL, np.full_like(a0s, np.nan), solver, progress=False, **kw)
     t0 = time.perf_counter()
-    sols = solve_batch(PROB, CTRL, a0s, SOLVER, progress=False, **kw)
+    sols = solve_batch(PROB, CTRL, a0s, solver, progress=False, **kw)
     return len(a0s) / (time.perf_counter() - t0), sols
 
 
@@ -81,6 +81,24 @@ def throughput():
         steps = np.asarray(sols.steps)
         print(f"| {n} | {loop:.1f}{' (extrapolated)' if n > LOOP_SUBSET else ''} | " + " | ".join(cells)
               + f" | {ok.mean():.0%} | {steps.mean():.0f} / {steps.max()} |", flush=True)
+    print()
+
+
+def solvers(n=256, subset=32):
+    print(f"## The solvers under solve_batch (N = {n}, 1 device; loop timed on {subset} starts)")
+    print()
+    print("| solver | loop [solves/s] | lanes=1 | ratio | lanes=32 | ratio | success |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    a0s = starts(n)
+    for name, solver in [("KalmanSearch (published tuning)", SOLVER), ("KalmanSQP (default)", jt.KalmanSQP()),
+                         ("KalmanSQP trust region", jt.KalmanSQP(hessian="exact", globalization="trust-region"))]:
+        loop = loop_rate(a0s[:subset], solver)
+        cells, ok = [], []
+        for lanes in (1, 32):
+            rate, sols = batch_rate(a0s, solver, lanes=lanes)
+            cells += [f"{rate:.1f}", f"{rate / loop:.2f}x"]
+            ok.append(np.mean(np.asarray(sols.status == jt.Status.SUCCESS)))
+        print(f"| {name} | {loop:.1f} | " + " | ".join(cells) + f" | {min(ok):.0%} |", flush=True)
     print()
 
 
@@ -223,7 +241,7 @@ def main():
         if name == "memory" and "--skip-memory" not in sys.argv:
             memory([(1000, 1000, False), (10000, 1000, False), (1000, 1000, True), (4000, 1000, True)])
         elif name != "memory":
-            {"throughput": throughput, "where": where_time_goes, "scaling": scaling}[name]()
+            {"throughput": throughput, "where": where_time_goes, "scaling": scaling, "solvers": solvers}[name]()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"(total {time.perf_counter() - t0:.0f} s; this process peaked at {rss:.0f} MiB)")
 
