@@ -208,6 +208,18 @@ def test_trust_region_subproblem_against_a_grid_in_two_dimensions():
     assert q(u) <= best + 1e-12 and abs(np.linalg.norm(u) - radius) < 1e-9  # negative curvature: on the boundary
 
 
+@pytest.mark.parametrize("g0", [0.0, 1e-16, 1e-14, 1e-13])
+def test_trust_region_subproblem_hard_case(g0):
+    """Gradient (nearly) orthogonal to the negative-curvature direction (the hard case): W =
+    diag(-1, 1), g = (g0, 0.1), radius 1. The minimum is on the boundary, sigma = 1, u =
+    (+-sqrt(1 - 0.05^2), -0.05), model value -0.5025 (by hand). Before a fix the round-off
+    component along the eigenvector made |u| up to 1.37 (review, session 6)."""
+    W, g = np.diag([-1.0, 1.0]), np.array([g0, 0.1])
+    u = np.asarray(_subproblem(jnp.asarray(g), jnp.asarray(W), jnp.eye(2), 1.0))
+    assert abs(np.linalg.norm(u) - 1.0) < 1e-9
+    assert g @ u + 0.5 * u @ W @ u < -0.5025 + 1e-9
+
+
 def test_min_norm_step_is_the_pseudoinverse_solution():
     rng = np.random.default_rng(3)
     H, E = rng.normal(size=(3, 7)), rng.normal(size=3)
@@ -339,6 +351,20 @@ def test_trust_region_batch_equals_single_solves():
         single = jt.solve(prob, ctrl, starts[k], TRUST_REGION, simulator=jt.RK4(30), max_steps=100)
         assert int(sols.iterations[k]) == int(single.iterations)
         np.testing.assert_allclose(sols.params[k], single.params, rtol=1e-10, atol=1e-10)
+
+
+def test_trust_region_from_a_collapsed_segment():
+    """A start with one spline duration at 0 (a collapsed segment, as a solution can leave it):
+    the first step is accepted (the gap row holds the gap at 0 up to round-off, which must not
+    count as disorder; before a review fix it rejected the first three steps), and the solve
+    reaches the min-energy optimum 6."""
+    prob = jt.problems.analytic.min_energy_double_integrator(1.0)
+    ctrl = jt.controls.SaturatedSpline(3, 1, -20.0, 20.0)
+    a0 = jnp.array([0.0, 0.6023746488161783, 0.5883137069445501, 6.903470181651809, 2.0940122977608744,
+                    -2.7434992493538086, -6.921725376258419])
+    sol = jt.solve(prob, ctrl, a0, TRUST_REGION, simulator=jt.RK4(8), max_steps=300)
+    assert sol.status == jt.Status.SUCCESS and abs(float(sol.objective) - 6.0) < 1e-8
+    assert bool(sol.history.accepted[0])
 
 
 def test_trust_region_refuses_path_constraints():
