@@ -103,6 +103,21 @@ def active_rows(ev, tol):
     return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
+def least_squares_multipliers(ev, path_active):
+    """Least-squares multipliers of E and of the path points with C >= -`path_active`
+    ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
+    converged point, the first active set is the touching one."""
+    A = active_rows(ev, path_active)
+    lam = jnp.linalg.lstsq(A.T, -ev.G_a)[0]
+    m = ev.E.shape[0]
+    return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
+
+
+def lagrangian_gradient(ev, lam):
+    """Gradient of the Lagrangian G + lambda^T [E; C] (terminal and path rows)."""
+    return ev.G_a + constraint_rows(ev).T @ lam
+
+
 #: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already
 #: observed is below this fraction of its prior variance is skipped (KalmanSQP's
 #: `path_dependence`, KalmanSearch's fixed value).

@@ -76,8 +76,9 @@ from jax import lax
 from ._kalman import (
     PATH_DEPENDENCE,
     active_rows,
-    constraint_rows,
     keep_knots_ordered,
+    lagrangian_gradient,
+    least_squares_multipliers,
     observe_worst,
     path_rows,
     sequential_update,
@@ -138,23 +139,9 @@ def _covariance(B):
     return 0.5 * (P + P.T)
 
 
-def _multipliers(ev: Evaluation, path_active):
-    """Least-squares multipliers of E and of the path points with C >= -`path_active`
-    ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
-    converged point, the first active set is the touching one."""
-    A = active_rows(ev, path_active)
-    lam = jnp.linalg.lstsq(A.T, -ev.G_a)[0]
-    m = ev.E.shape[0]
-    return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
-
-
-def _lagrangian_gradient(ev: Evaluation, lam):
-    return ev.G_a + constraint_rows(ev).T @ lam
-
-
 def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
     """BFGS update with the change of the Lagrangian's gradient (multipliers `lam`)."""
-    return bfgs_update(B, s, _lagrangian_gradient(cand, lam) - _lagrangian_gradient(ev, lam))
+    return bfgs_update(B, s, lagrangian_gradient(cand, lam) - lagrangian_gradient(ev, lam))
 
 
 def _merit_value(G, E, C, lam, mu):
@@ -328,7 +315,7 @@ class KalmanSQP(AbstractSolver):
     def _hessian(self, problem, control, a, simulator, lam):
         def grad_lagrangian(a):
             ev = self._restricted(problem, control, a, simulator)
-            return _lagrangian_gradient(ev, lam), ev
+            return lagrangian_gradient(ev, lam), ev
 
         hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
         B = convexify(0.5 * (hess + hess.T), ev.H, self.min_curvature)
@@ -453,7 +440,7 @@ class KalmanSQP(AbstractSolver):
     def init(self, problem, control, a0, simulator, max_steps):
         if self.globalization == "trust-region":
             return _trust_region.init(self, problem, control, a0, simulator, max_steps)
-        lam = _multipliers(self._restricted(problem, control, a0, simulator), self.path_active)
+        lam = least_squares_multipliers(self._restricted(problem, control, a0, simulator), self.path_active)
         ev, B = self._hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
         hist = History.empty(max_steps)

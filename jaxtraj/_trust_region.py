@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import sequential_update
+from ._kalman import lagrangian_gradient, least_squares_multipliers, sequential_update
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._simulate import RK4, final_state
@@ -61,7 +61,7 @@ _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the brac
 
 
 def lagrangian_hessian(problem, control, a, simulator, lam):
-    """Hessian of the Lagrangian G + lambda^T E at `a`: forward over reverse autodiff of the
+    """Hessian of the Lagrangian G + lambda^T E at `a` (zero if not finite): forward over reverse autodiff of the
     plain simulation with RK4 (measured 1.5-1.8x faster than forward over the forward
     sensitivities on Earth-Mars cases 1, 4, 5: 1.7 vs 2.7 ms, 3.1 vs 5.5, 2.1 vs 3.7), forward
     over forward for other simulators (diffrax runs with forward-mode adjoints only)."""
@@ -76,21 +76,16 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
     else:
 
         def gradient(a):
-            ev = evaluate_restricted(problem, control, a, simulator, "forward")
-            return ev.G_a + ev.H.T @ lam
+            return lagrangian_gradient(evaluate_restricted(problem, control, a, simulator, "forward"), lam)
 
         W = jax.jacfwd(gradient)(a)
-    return 0.5 * (W + W.T)
+    W = 0.5 * (W + W.T)
+    return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)  # a failed integration: no curvature
 
 
-def _least_squares_multipliers(ev: Evaluation):
-    lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
+def _multipliers(ev: Evaluation):
+    lam = least_squares_multipliers(ev, 0.0)  # no path rows here: lstsq(H^T, -G_a)
     return jnp.where(jnp.all(jnp.isfinite(lam)), lam, 0.0)
-
-
-def _hessian(problem, control, a, simulator, lam):
-    W = lagrangian_hessian(problem, control, a, simulator, lam)
-    return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)
 
 
 def min_norm_step(rows, target, active=None):
@@ -204,8 +199,8 @@ def init(solver, problem, control, a0, simulator, max_steps):
     if problem.path is not None:
         raise ValueError("KalmanSQP: `globalization='trust-region'` does not handle path constraints; use 'line-search'.")
     ev = evaluate_restricted(problem, control, a0, simulator, "forward")
-    lam = _least_squares_multipliers(ev)
-    W = _hessian(problem, control, a0, simulator, lam)
+    lam = _multipliers(ev)
+    W = lagrangian_hessian(problem, control, a0, simulator, lam)
     ok0 = ev.status == Status.SUCCESS
     f = jnp.float64
     zero = jnp.zeros_like(a0)
@@ -250,7 +245,7 @@ def step(solver, problem, control, simulator, state: TRState):
     # one integration: the candidate
     total = d + jnp.where(fresh, 0.0, state.d_soc)
     cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
-    lam_c = _least_squares_multipliers(cand)
+    lam_c = _multipliers(cand)
     phi = _merit(cand, lam, nu)
     new_knots = control.knots(a + total)
     # knots in order, up to the round-off a collapsed segment (gap 0, held by its row) leaves
@@ -287,7 +282,7 @@ def step(solver, problem, control, simulator, state: TRState):
     hessian = accept & ~converged & ~stalled
     new_W = lax.cond(
         hessian,
-        lambda: _hessian(problem, control, new_a, simulator, new_lam),
+        lambda: lagrangian_hessian(problem, control, new_a, simulator, new_lam),
         lambda: W,
     )
     i = state.num_steps
