@@ -118,6 +118,17 @@ def lagrangian_gradient(ev, lam):
     return ev.G_a + constraint_rows(ev).T @ lam
 
 
+def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
+    """`(converged, stalled)` of an SQP iteration: converged when `feasible` and the projected
+    gradient `pg` <= `gtol` (1 + |G|), or, once `no_progress` (round-off leaves no measurable
+    progress), <= `acceptable_gtol` (1 + |G|); stalled when progress ended short of that. The
+    second level keeps the outcome off the knife edge where the projected gradient's
+    round-off floor (set by the sensitivities) meets `gtol`."""
+    scale = 1.0 + jnp.abs(G)
+    converged = feasible & ((pg <= gtol * scale) | (no_progress & (pg <= acceptable_gtol * scale)))
+    return converged, ~converged & no_progress
+
+
 #: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already
 #: observed is below this fraction of its prior variance is skipped (KalmanSQP's
 #: `path_dependence`, KalmanSearch's fixed value).

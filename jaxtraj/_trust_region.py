@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import lagrangian_gradient, least_squares_multipliers, sequential_update
+from ._kalman import kkt_outcome, lagrangian_gradient, least_squares_multipliers, sequential_update
 from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._simulate import RK4, final_state
@@ -274,9 +274,11 @@ def step(solver, problem, control, simulator, state: TRState):
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, lam))
     maxE = jnp.max(jnp.abs(new_ev.E))
     pg = _projected_gradient(new_ev.G_a, new_ev.H)
-    converged = (maxE <= solver.ctol) & (pg <= solver.gtol * (1.0 + jnp.abs(new_ev.G)))
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
-    stalled = ~converged & (~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)))  # NaN radius too
+    no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny))  # NaN radius too
+    converged, stalled = kkt_outcome(
+        maxE <= solver.ctol, pg, new_ev.G, solver.gtol, solver.acceptable_gtol, no_progress
+    )
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
     # first-order integration alone (in a single solve; under vmap both branches run).
     hessian = accept & ~converged & ~stalled

@@ -7,6 +7,21 @@ import jaxtraj as jt
 
 ALL_CASES = range(1, 8)
 
+#: Relative perturbations of a start the size of a change of CPU or XLA fusion (issue 17).
+ROUNDOFF_EPS = (0.0, 1e-12, 1e-10)
+
+
+def perturbed_starts(a0, seed=17, absolute=False):
+    """`a0 * (1 + eps r)` for each eps of `ROUNDOFF_EPS`, r a fixed standard normal vector:
+    the starts a solver must treat alike (SUCCESS every time, the same optimum within its
+    stated tolerance). With `absolute`, `a0 + eps r max(|a0|, 1)` instead, which also moves
+    the zero components (a start at rest). Shape `(len(ROUNDOFF_EPS), a0.size)`."""
+    a0 = np.asarray(a0, dtype=np.float64)
+    r = np.random.default_rng(seed).standard_normal(a0.shape)
+    if absolute:
+        return jnp.asarray(np.stack([a0 + eps * r * np.maximum(np.abs(a0), 1.0) for eps in ROUNDOFF_EPS]))
+    return jnp.asarray(np.stack([a0 * (1.0 + eps * r) for eps in ROUNDOFF_EPS]))
+
 
 def rel_err(got, want):
     """Max-abs difference relative to the max-abs of the reference."""

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate
+from helpers import ROUNDOFF_EPS, perturbed_starts
 
 import jaxtraj as jt
 import jaxtraj.problems.solar_sail as ss
@@ -431,12 +432,18 @@ def test_kalman_solvers_reach_each_target(solver, target, pitch_deg, tf_days_ind
     kalman, max_steps, above = {"sqp": (jt.KalmanSQP(), 600, 1e-4), "search": (ss.kalman_search_solver(), 1000, 5e-3)}[
         solver
     ]
-    sol = jt.solve(prob, ctrl, a0, kalman, simulator=jt.RK4(100), max_steps=max_steps)
-    assert jt.status_name(sol.status) == "SUCCESS"
-    assert float(sol.max_constraint_error) <= 1e-8
-    assert ss.diagnose(prob, ctrl, sol.params)["flags"] == []
-    tf_days = float(sol.tf) * ss.DAYS_PER_UNIT
-    assert tf_days_indirect - 0.01 <= tf_days <= tf_days_indirect * (1.0 + above)
+    # the start and two round-off-sized perturbations of it (another CPU's last bits): the
+    # same outcome every time (before issue 17, KalmanSQP STALLED on 11 of 33 such starts,
+    # its projected-gradient floor sitting at its tolerance)
+    sols = jt.solve_batch(prob, ctrl, perturbed_starts(a0), kalman, simulator=jt.RK4(100), max_steps=max_steps,
+                          progress=False, history=False)
+    assert jt.status_name(sols.status).tolist() == ["SUCCESS"] * len(ROUNDOFF_EPS)
+    tf_days = np.asarray(sols.tf) * ss.DAYS_PER_UNIT
+    assert np.ptp(tf_days) <= 1e-6  # measured: <= 1e-8 d
+    for sol in sols:
+        assert float(sol.max_constraint_error) <= 1e-8
+        assert ss.diagnose(prob, ctrl, sol.params)["flags"] == []
+    assert np.all((tf_days_indirect - 0.01 <= tf_days) & (tf_days <= tf_days_indirect * (1.0 + above)))
 
 
 def test_kalman_search_solver_tuning():
