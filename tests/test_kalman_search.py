@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from helpers import counting_problem
+from helpers import ROUNDOFF_EPS, counting_problem, perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_slsqp
@@ -111,12 +111,20 @@ SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3
 
 @pytest.mark.parametrize("case", range(1, 8))
 def test_all_seven_published_cases_converge_to_the_restricted_optimum(case):
+    """The published start and tuning, and the start perturbed by round-off-sized relative
+    changes (1e-12, 1e-10: another CPU's last bits): SUCCESS every time, with what SUCCESS
+    guarantees (max |E| <= e_a, projected gradient <= max(gtol, e_a) (1 + |G|)), at the SLSQP
+    optimum (measured: a few 1e-6; spread between the three starts <= 7e-8, case 7). Known
+    open flip (benchmarks/RESULTS.md, round-off): case 7 collapses a level and STALLS from 1
+    of 11 other such starts on the reference machine."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
-    sol = jt.solve(prob, ctrl, a0, jt.problems.earth_mars.thesis_solver(case))
-    assert sol.status == jt.Status.SUCCESS
-    assert float(sol.max_constraint_error) <= 1e-8
+    solver = jt.problems.earth_mars.thesis_solver(case)
+    sols = jt.solve_batch(prob, ctrl, perturbed_starts(a0), solver, progress=False, history=False)
+    assert jt.status_name(sols.status).tolist() == ["SUCCESS"] * len(ROUNDOFF_EPS)
+    assert np.all(np.asarray(sols.max_constraint_error) <= solver.e_a)
+    assert np.all(np.asarray(sols.projected_gradient) <= solver.gtol * (1.0 + np.abs(np.asarray(sols.objective))))
     # issue target: 1e-3 (5e-3 for the many-minima cases 6, 7); reached: a few 1e-6
-    assert abs(float(sol.tf) - SLSQP_OPTIMA[case]) < 1e-5
+    assert np.all(np.abs(np.asarray(sols.tf) - SLSQP_OPTIMA[case]) < 1e-5)
 
 
 def test_nonfinite_candidate_is_a_rejected_step_not_a_nan_result():

