@@ -51,15 +51,18 @@ def sequential_update(da, P, H, z, r, active=None):
     return da, P, s
 
 
-def keep_knots_ordered(da, P, knots, dknots, a_t):
+def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     """Seed 000 appendix C: keep the segment boundaries in order after the increment `da`.
 
     Each gap g_i = t_{i+1} - t_i that `da` would close (g_i + dg_i/da . da <= 0) becomes one
     more observation, filtered after the regular ones: on h* = -dg_i/da (the *approach* of
     the two knots) z* = g_i / a_t with variance z*^2 / 12 [C.4-C.5] (OCR: the thesis prints
-    the observation, not a_t; see `KalmanSearch.a_t`). If the order is still violated, `da`
-    is scaled so that every gap keeps at least 1/(2 a_t) of its length. Gaps are linear in
-    a, so every step `alpha da` with alpha in [0, 1] keeps the order too.
+    the observation, not a_t; see `KalmanSearch.a_t`). With `keep` (a fraction in (0, 1)),
+    a gap that would still keep less than `keep` of its length is then observed, without
+    noise, at exactly that fraction: the gap is held while every other parameter moves on.
+    If the order is still violated, `da` is scaled so that every gap keeps at least
+    1/(2 a_t) of its length. Gaps are linear in a, so every step `alpha da` with alpha in
+    [0, 1] keeps the order too.
 
     `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
     `(da, P)`.
@@ -69,6 +72,10 @@ def keep_knots_ordered(da, P, knots, dknots, a_t):
     violated = gaps + D @ da <= 0.0
     z_star = gaps / a_t
     da, P, _ = sequential_update(da, P, -D, z_star, (z_star**2) / 12.0 + 1e-300, active=violated)
+    if keep is not None:
+        short = (gaps > 0.0) & (gaps + D @ da < keep * gaps)
+        r = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D) + 1e-300  # (almost) noise-free, as KalmanSQP's r_rel
+        da, P, _ = sequential_update(da, P, -D, (1.0 - keep) * gaps, r, active=short)
     closing = D @ da
     # A gap already at 0 (a collapsed segment, a duration h_k = 0 at its bound) is held there
     # by its observation (z* = 0, variance 0) up to round-off; only a real closing scales the

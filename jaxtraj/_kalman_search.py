@@ -16,9 +16,15 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
   (rho h_i G_a - s E_i)^2 = e_m^2/3 + h_i P h_i; it exists because beta_p >= 1 [3.30].
 * Time-ordering observation [C.4-C.5]: on h* = e_i - e_{i+1} (the *approach* of two knots),
   z* = (t_{i+1} - t_i) / a_t with variance z*^2 / 12, filtered after the regular
-  observations whenever the increment would make t_i + Dt_i >= t_{i+1} + Dt_{i+1}; if the
-  order is still violated the increment is scaled so that every gap keeps at least
-  1/(2 a_t) of its length.
+  observations whenever the increment would make t_i + Dt_i >= t_{i+1} + Dt_{i+1}. Our
+  addition: a gap that would still lose more than half its length (`gap_keep`) is observed
+  without noise at half its length, so that it is held while the other parameters move on;
+  if the order is still violated the increment is scaled so that every gap keeps at least
+  1/(2 a_t) of its length. Without the held half, a few large steps on the edge of the e_a
+  band (rho re-tuned up to rho_max) closed a gap to zero, each keeping 1/(2 a_t) = 1/20 of
+  it, and a zero-length level has no gradient to reopen it: case 7 STALLED at 3.34274 from
+  1 of 11 round-off-perturbed starts (issue 17). Scaling the whole step instead (the trust
+  region's floor) throttles every parameter and stalled case 7 from every start.
 * Step shrinking [4.40, 4.44, 4.47]: the quadratic model in alpha is solved on a fixed
   grid of alphas (largest admissible one), never below `min_shrink`.
 * Constraint-change cap [4.27-4.28]: the room for the predicted change of E_i is
@@ -141,6 +147,7 @@ class KalmanSearch(AbstractSolver):
     - `max_rejections`: consecutive rejected candidates before STALLED (MAXREJ);
       `max_retunings`: preliminary re-tunings per candidate.
     - `min_shrink`: smallest step-shrink factor.
+    - `gap_keep`: the least fraction of a knot gap one increment keeps (0.5; module docs).
 
     What SUCCESS guarantees: max |E_i| <= `e_a`, max C <= `e_a` on the grid, and the
     projected gradient |V G_a| <= max(`gtol`, `e_a`) (1 + |G|) (1e-5 relative by default: a
@@ -173,6 +180,7 @@ class KalmanSearch(AbstractSolver):
     max_rejections: int = 12
     max_retunings: int = 30
     min_shrink: float = 0.05
+    gap_keep: float = 0.5
     method: str = "forward"
 
     def __check_init__(self):
@@ -190,6 +198,7 @@ class KalmanSearch(AbstractSolver):
             "a_t": self.a_t >= 1,
             "linearity_ratio": 0 < self.linearity_ratio < 1,
             "min_shrink": 0 < self.min_shrink < 1,
+            "gap_keep": 0 < self.gap_keep < 1,
         }
         for name, ok in checks.items():
             if not ok:
@@ -234,7 +243,7 @@ class KalmanSearch(AbstractSolver):
             da, P1, _ = observe_worst(
                 da, P1, C, C_a, r_c, prior_var, PATH_DEPENDENCE, 0.0, none, none, da.shape[0]
             )
-        da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t)  # appendix C
+        da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t, self.gap_keep)  # appendix C
         return da2, P2, s_bar
 
     def _preliminary(self, ev, rho, beta, beta_p, phase, e_a, knots, dknots):

@@ -44,8 +44,8 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   penalty of the time) the seven cases took 24, 28, 21, 11, 14, 31, 27 iterations instead of
   24, 32, 23, 11, 14, 37, 29 (BFGS) and 12, 28, 16, 8, 9, 18, 16 instead of 14, 34, 18, 8,
   9, 88, 16 (exact Hessian).
-* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`),
-  exactly as in `KalmanSearch`.
+* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`,
+  as in `KalmanSearch` but without its held half gap: the line search shortens the step).
 * Path constraints C(t, x, u) <= 0 (on the integration grid), the appendix-C way: the grid
   points of an active set become observations C_a d = -C after the terminal ones. The active
   set (see `_direction`): the previous iteration's (positive multipliers), less rows whose

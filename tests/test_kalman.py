@@ -97,3 +97,27 @@ def test_knot_ordering_holds_a_collapsed_segment_without_freezing_the_step():
         np.testing.assert_allclose(d, reference, atol=1e-12)
         gaps = np.diff(np.asarray(knots + dknots @ d))
         assert abs(gaps[1]) < 1e-12 and np.all(gaps >= -1e-15)
+
+
+def test_keep_knots_ordered_holds_half_a_closing_gap():
+    """With `keep`, a gap the step would shrink below that fraction is held at exactly the
+    fraction by a noise-free observation (the minimum-P^-1-norm change of the step, as the
+    batch projection gives), so the other parameters are not throttled; gaps the step leaves
+    alone are untouched."""
+    from jaxtraj._kalman import keep_knots_ordered
+
+    knots = jnp.array([0.0, 1.0, 1.5, 3.0])  # gaps 1, 0.5, 1.5 (t1, t2, t3 = a0, a1, a2)
+    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
+    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da: the middle gap
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(3, 3))
+        P = A @ A.T + 0.1 * np.eye(3)
+        da = np.array([0.45, 0.05, 0.3]) + 0.01 * rng.normal(size=3)  # the middle gap shrinks by ~80 %
+        d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0, keep=0.5)
+        gaps = np.diff(np.asarray(knots + dknots @ d))
+        np.testing.assert_allclose(gaps[1], 0.25, rtol=1e-9)  # half of 0.5 kept
+        target = -0.25  # the middle gap's change
+        reference = da - P @ D.T @ np.linalg.solve(D @ P @ D.T, D @ da - target)
+        np.testing.assert_allclose(d, reference, atol=1e-9)
+        assert np.all(gaps > 0)

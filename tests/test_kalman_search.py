@@ -114,9 +114,9 @@ def test_all_seven_published_cases_converge_to_the_restricted_optimum(case):
     """The published start and tuning, and the start perturbed by round-off-sized relative
     changes (1e-12, 1e-10: another CPU's last bits): SUCCESS every time, with what SUCCESS
     guarantees (max |E| <= e_a, projected gradient <= max(gtol, e_a) (1 + |G|)), at the SLSQP
-    optimum (measured: a few 1e-6; spread between the three starts <= 7e-8, case 7). Known
-    open flip (benchmarks/RESULTS.md, round-off): case 7 collapses a level and STALLS from 1
-    of 11 other such starts on the reference machine."""
+    optimum (measured: a few 1e-6; spread between the starts <= 2e-14). Before `gap_keep`,
+    case 7 closed a level to zero length and STALLED from 1 of 11 such starts
+    (benchmarks/roundoff.py)."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
     solver = jt.problems.earth_mars.thesis_solver(case)
     sols = jt.solve_batch(prob, ctrl, perturbed_starts(a0), solver, progress=False, history=False)
