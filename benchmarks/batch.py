@@ -60,11 +60,15 @@ def batch_rate(a0s, solver=SOLVER, **kw):
 def throughput():
     print("## solve_batch vs a Python loop of jitted single solves (1 device)")
     print()
-    print(f"Loop timed on the first min(N, {LOOP_SUBSET}) starts and extrapolated. `lanes` = starts vmapped "
-          "together per device (default on CPU: 1, a compiled loop of single solves).")
+    print(
+        f"Loop timed on the first min(N, {LOOP_SUBSET}) starts and extrapolated. `lanes` = starts vmapped "
+        "together per device (default on CPU: 1, a compiled loop of single solves)."
+    )
     print()
-    print("| N | loop [solves/s] | solve_batch default (lanes=1) [solves/s] | ratio | lanes=8 | ratio "
-          "| lanes=32 | ratio | lanes=64 | ratio | success | mean / max steps |")
+    print(
+        "| N | loop [solves/s] | solve_batch default (lanes=1) [solves/s] | ratio | lanes=8 | ratio "
+        "| lanes=32 | ratio | lanes=64 | ratio | success | mean / max steps |"
+    )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in (1, 16, 256, 1024):
         a0s = starts(n)
@@ -79,8 +83,12 @@ def throughput():
             cells += [f"{rate:.1f}", f"{rate / loop:.2f}x"]
         ok = np.asarray(sols.status == jt.Status.SUCCESS)
         steps = np.asarray(sols.steps)
-        print(f"| {n} | {loop:.1f}{' (extrapolated)' if n > LOOP_SUBSET else ''} | " + " | ".join(cells)
-              + f" | {ok.mean():.0%} | {steps.mean():.0f} / {steps.max()} |", flush=True)
+        print(
+            f"| {n} | {loop:.1f}{' (extrapolated)' if n > LOOP_SUBSET else ''} | "
+            + " | ".join(cells)
+            + f" | {ok.mean():.0%} | {steps.mean():.0f} / {steps.max()} |",
+            flush=True,
+        )
     print()
 
 
@@ -90,8 +98,11 @@ def solvers(n=256, subset=32):
     print("| solver | loop [solves/s] | lanes=1 | ratio | lanes=32 | ratio | success |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     a0s = starts(n)
-    for name, solver in [("KalmanSearch (published tuning)", SOLVER), ("KalmanSQP (default)", jt.KalmanSQP()),
-                         ("KalmanSQP trust region", jt.KalmanSQP(hessian="exact", globalization="trust-region"))]:
+    for name, solver in [
+        ("KalmanSearch (published tuning)", SOLVER),
+        ("KalmanSQP (default)", jt.KalmanSQP()),
+        ("KalmanSQP trust region", jt.KalmanSQP(hessian="exact", globalization="trust-region")),
+    ]:
         loop = loop_rate(a0s[:subset], solver)
         cells, ok = [], []
         for lanes in (1, 32):
@@ -119,9 +130,11 @@ def where_time_goes():
         print(f"| {b} | {best / b * 1e6:.0f} |", flush=True)
     print()
     steps = np.asarray(solve_batch(PROB, CTRL, a0s, SOLVER, progress=False, history=False).steps)
-    print("Useful share of the lane-iterations (sum of steps / (lanes x loop iterations)) for these 256 "
-          "starts: a vmapped group of whole solves iterates as long as its slowest start; the queue of "
-          "`solve_batch` (lanes > 1) refills finished lanes (replayed here from the measured steps):")
+    print(
+        "Useful share of the lane-iterations (sum of steps / (lanes x loop iterations)) for these 256 "
+        "starts: a vmapped group of whole solves iterates as long as its slowest start; the queue of "
+        "`solve_batch` (lanes > 1) refills finished lanes (replayed here from the measured steps):"
+    )
     print()
     print("| lanes | 4 | 16 | 32 | 64 | 256 |")
     print("|---|---:|---:|---:|---:|---:|")
@@ -170,11 +183,15 @@ for k in range(1, len(jax.devices()) + 1):
 
 
 def scaling(n=256, counts=(2,)):
-    print(f"## Scaling with host devices (N = {n}, lanes=1; one process per row group, "
-          "`XLA_FLAGS=--xla_force_host_platform_device_count=D`, first D devices used)")
+    print(
+        f"## Scaling with host devices (N = {n}, lanes=1; one process per row group, "
+        "`XLA_FLAGS=--xla_force_host_platform_device_count=D`, first D devices used)"
+    )
     print()
-    print("| host devices in process | devices used | solve_batch [solves/s] | loop in same process [solves/s] "
-          "| ratio to loop | speed-up over 1 device |")
+    print(
+        "| host devices in process | devices used | solve_batch [solves/s] | loop in same process [solves/s] "
+        "| ratio to loop | speed-up over 1 device |"
+    )
     print("|---:|---:|---:|---:|---:|---:|")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     for d in counts:
@@ -186,8 +203,11 @@ def scaling(n=256, counts=(2,)):
         rows = [line.split() for line in proc.stdout.strip().splitlines()]
         one = float(rows[0][1])
         for k, rate, loop in rows:
-            print(f"| {d} | {k} | {float(rate):.1f} | {float(loop):.1f} | {float(rate) / float(loop):.2f}x "
-                  f"| {float(rate) / one:.2f}x |", flush=True)
+            print(
+                f"| {d} | {k} | {float(rate):.1f} | {float(loop):.1f} | {float(rate) / float(loop):.2f}x "
+                f"| {float(rate) / one:.2f}x |",
+                flush=True,
+            )
     print()
 
 
@@ -212,28 +232,40 @@ print(n, chunk, history, hwm, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 def memory(runs):
     print("## Peak memory with chunking (fresh process per row; includes JAX, compilation and the result)")
     print()
-    print("Peak RSS is the child's VmHWM (/proc/self/status). Its `ru_maxrss` is also shown: on Linux it "
-          "carries over the parent's peak through fork + exec, so it is only meaningful when the parent is small.")
+    print(
+        "Peak RSS is the child's VmHWM (/proc/self/status). Its `ru_maxrss` is also shown: on Linux it "
+        "carries over the parent's peak through fork + exec, so it is only meaningful when the parent is small."
+    )
     print()
-    print("| N | chunk_size | history | peak RSS (VmHWM) [MiB] | ru_maxrss [MiB] | wall incl. compile [s] "
-          "| solves/s | success |")
+    print(
+        "| N | chunk_size | history | peak RSS (VmHWM) [MiB] | ru_maxrss [MiB] | wall incl. compile [s] "
+        "| solves/s | success |"
+    )
     print("|---:|---:|---|---:|---:|---:|---:|---:|")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     for n, chunk, history in runs:
-        proc = subprocess.run([sys.executable, "-c", _MEMORY, root, str(n), str(chunk), "1" if history else "0"],
-                              capture_output=True, text=True)
+        proc = subprocess.run(
+            [sys.executable, "-c", _MEMORY, root, str(n), str(chunk), "1" if history else "0"],
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode:
             print(proc.stderr[-2000:])
             continue
         _, _, _, hwm, rss, wall, ok = proc.stdout.split()[-7:]
-        print(f"| {n} | {chunk} | {history} | {float(hwm):.0f} | {float(rss):.0f} | {float(wall):.1f} "
-              f"| {n / float(wall):.1f} | {float(ok):.1%} |", flush=True)
+        print(
+            f"| {n} | {chunk} | {history} | {float(hwm):.0f} | {float(rss):.0f} | {float(wall):.1f} "
+            f"| {n / float(wall):.1f} | {float(ok):.1%} |",
+            flush=True,
+        )
     print()
 
 
 def main():
-    print(f"# solve_batch benchmark — {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
-          f"{len(jax.devices())} device(s), x64, case 4, RK4(100), KalmanSearch, spread {SPREAD}")
+    print(
+        f"# solve_batch benchmark — {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
+        f"{len(jax.devices())} device(s), x64, case 4, RK4(100), KalmanSearch, spread {SPREAD}"
+    )
     print()
     t0 = time.perf_counter()
     sections = [a for a in sys.argv[1:] if not a.startswith("--")] or ["memory", "throughput", "where", "scaling"]

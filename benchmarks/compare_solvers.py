@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 import jaxtraj as jt
+from jaxtraj._kkt import projected_gradient
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
 
 try:
@@ -60,8 +61,10 @@ def _row(sol):
         "pg": float(sol.projected_gradient),
         "iterations": int(sol.iterations),
         "integrations": int(sol.integrations),
-        "history": (np.asarray(sol.history.objective)[: int(sol.steps)],
-                    np.asarray(sol.history.max_constraint_error)[: int(sol.steps)]),
+        "history": (
+            np.asarray(sol.history.objective)[: int(sol.steps)],
+            np.asarray(sol.history.max_constraint_error)[: int(sol.steps)],
+        ),
     }
 
 
@@ -88,7 +91,7 @@ def run_case(case):
             "status": "SUCCESS" if res.success else "FAILED",
             "tf": res.tf,
             "maxE": res.max_constraint_error,
-            "pg": float(jt._kalman_search._projected_gradient(G_a_H.G_a, G_a_H.H)),
+            "pg": float(projected_gradient(G_a_H.G_a, G_a_H.H)),
             "iterations": res.iterations,
             "integrations": res.evaluations,
             "first": first,
@@ -126,10 +129,14 @@ def main():
     parser.add_argument("--cases", type=int, nargs="*", default=list(range(1, 8)))
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args()
-    print(f"# solver comparison — {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"jax {jax.__version__}, RK4(100), forward sensitivities, published starts")
-    print("\n| case | solver | status | tf | max abs E | proj. gradient | iterations | integrations "
-          "| first call [s] | warm [ms] | warm / KalmanSQP |")
+    print(
+        f"# solver comparison — {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"jax {jax.__version__}, RK4(100), forward sensitivities, published starts"
+    )
+    print(
+        "\n| case | solver | status | tf | max abs E | proj. gradient | iterations | integrations "
+        "| first call [s] | warm [ms] | warm / KalmanSQP |"
+    )
     print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     all_rows = {}
     for case in args.cases:
@@ -137,9 +144,12 @@ def main():
         all_rows[case] = rows
         ref = rows["KalmanSQP"]["warm"]
         for name, r in rows.items():
-            print(f"| {case} | {name} | {r['status']} | {r['tf']:.8f} | {r['maxE']:.1e} | {r['pg']:.1e} "
-                  f"| {r['iterations']} | {r['integrations']} | {r['first']:.1f} | {r['warm'] * 1e3:.1f} "
-                  f"| {r['warm'] / ref:.2f} |", flush=True)
+            print(
+                f"| {case} | {name} | {r['status']} | {r['tf']:.8f} | {r['maxE']:.1e} | {r['pg']:.1e} "
+                f"| {r['iterations']} | {r['integrations']} | {r['first']:.1f} | {r['warm'] * 1e3:.1f} "
+                f"| {r['warm'] / ref:.2f} |",
+                flush=True,
+            )
     if 5 in all_rows and not args.no_plot:
         path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "convergence_case5.png")
         tf_star = min(r["tf"] for r in all_rows[5].values() if r["maxE"] < 1e-9)

@@ -18,13 +18,12 @@ import time
 
 os.environ.setdefault("EQX_ON_ERROR", "nan")
 
-import jax  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import numpy as np
 
-import jaxtraj as jt  # noqa: E402
-from jaxtraj._sensitivity import evaluate_restricted, forward_jacobian, unit_jacobian  # noqa: E402
-from jaxtraj._simulate import final_state  # noqa: E402
-
+import jaxtraj as jt
+from jaxtraj._sensitivity import evaluate_restricted, forward_jacobian, unit_jacobian
+from jaxtraj._simulate import final_state
 
 ROUNDS = 7
 
@@ -58,11 +57,15 @@ def compile_time(fn, arg):
 
 
 def main():
-    print(f"# jaxtraj kernel benchmark — {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} cores, jax {jax.__version__}, backend {jax.default_backend()}, x64")
+    print(
+        f"# jaxtraj kernel benchmark — {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores, jax {jax.__version__}, backend {jax.default_backend()}, x64"
+    )
     sims = {"RK4(100)": jt.RK4(100), "Tsit5 rtol1e-10": jt.Diffrax(rtol=1e-10, atol=1e-12)}
     compiles = []
-    print("\n| case | integrator | simulation [us] | sim + Jacobian, forward [us] | ratio | sim + Jacobian, unit [us] | ratio |")
+    print(
+        "\n| case | integrator | simulation [us] | sim + Jacobian, forward [us] | ratio | sim + Jacobian, unit [us] | ratio |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|")
     for case in (4, 5):
         prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
@@ -79,8 +82,10 @@ def main():
             rounds = [{key: timeit(fn, a0, min_time=0.1) * 1e6 for key, fn in fns.items()} for _ in range(ROUNDS)]
             t = {key: float(np.median([r[key] for r in rounds])) for key in fns}
             ratio = {key: float(np.median([r[key] / r["sim"] for r in rounds])) for key in ("forward", "unit")}
-            print(f"| {case} | {name} | {t['sim']:.0f} | {t['forward']:.0f} | {ratio['forward']:.1f}x "
-                  f"| {t['unit']:.0f} | {ratio['unit']:.1f}x |")
+            print(
+                f"| {case} | {name} | {t['sim']:.0f} | {t['forward']:.0f} | {ratio['forward']:.1f}x "
+                f"| {t['unit']:.0f} | {ratio['unit']:.1f}x |"
+            )
 
     print("\n| batch N | simulation [evals/s] | sim + Jacobian + G, E, H [evals/s] | per evaluation [us] |")
     print("|---:|---:|---:|---:|")

@@ -158,8 +158,10 @@ def main(argv=None):
     t_total = time.perf_counter() - t_start
 
     print()
-    print("| case | control | best tf (RK4 100) | max\\|E\\| | converged / starts (SLSQP success) "
-          "| tf spread (converged) | within 1e-8 of best | best from | published tf |")
+    print(
+        "| case | control | best tf (RK4 100) | max\\|E\\| | converged / starts (SLSQP success) "
+        "| tf spread (converged) | within 1e-8 of best | best from | published tf |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for c in sorted(cases):
         _, ctrl, _ = jt.problems.earth_mars.thesis_case(c)
@@ -178,7 +180,9 @@ def main(argv=None):
         )
 
     print()
-    print("| case | tf RK4(100) | tf RK4(400) | tf Diffrax Tsit5 1e-12 | RK4(100) - Diffrax | max\\|E\\| RK4(400) / Diffrax |")
+    print(
+        "| case | tf RK4(100) | tf RK4(400) | tf Diffrax Tsit5 1e-12 | RK4(100) - Diffrax | max\\|E\\| RK4(400) / Diffrax |"
+    )
     print("|---|---|---|---|---|---|")
     for c in sorted(cases):
         if c not in checks:
@@ -204,7 +208,9 @@ def main(argv=None):
     print()
     print("best parameter vectors (RK4 100):")
     for c in sorted(best):
-        print(f"  case {c}: {np.array2string(best[c]['result'].params, precision=10, separator=', ', max_line_width=10**6)}")
+        print(
+            f"  case {c}: {np.array2string(best[c]['result'].params, precision=10, separator=', ', max_line_width=10**6)}"
+        )
     print(f"\nsearch {t_search:.0f} s, checks {t_total - t_search:.0f} s, total {t_total:.0f} s")
     return 0
 

@@ -41,8 +41,17 @@ def cases(only):
     if only in (None, "earth-mars"):
         for n in range(1, 8):
             prob, ctrl, a0 = earth_mars.thesis_case(n)
-            yield f"earth-mars case {n}", "KalmanSearch (published tuning)", prob, ctrl, a0, \
-                earth_mars.thesis_solver(n), jt.RK4(), 5000, 1.0
+            yield (
+                f"earth-mars case {n}",
+                "KalmanSearch (published tuning)",
+                prob,
+                ctrl,
+                a0,
+                earth_mars.thesis_solver(n),
+                jt.RK4(),
+                5000,
+                1.0,
+            )
             yield f"earth-mars case {n}", "KalmanSQP", prob, ctrl, a0, jt.KalmanSQP(), jt.RK4(), 5000, 1.0
     if only in (None, "sail"):
         for target, pitch in (("mars", 20.0), ("venus", -50.0), ("mercury", -50.0)):
@@ -51,8 +60,17 @@ def cases(only):
             a0 = jnp.asarray(ctrl.initial_guess(solar_sail.TF_BOX[target] / 2.0, alpha, alpha))
             days = solar_sail.DAYS_PER_UNIT
             yield f"sail {target} [d]", "KalmanSQP", prob, ctrl, a0, jt.KalmanSQP(), jt.RK4(100), 600, days
-            yield f"sail {target} [d]", "KalmanSearch (sail tuning)", prob, ctrl, a0, \
-                solar_sail.kalman_search_solver(), jt.RK4(100), 1000, days
+            yield (
+                f"sail {target} [d]",
+                "KalmanSearch (sail tuning)",
+                prob,
+                ctrl,
+                a0,
+                solar_sail.kalman_search_solver(),
+                jt.RK4(100),
+                1000,
+                days,
+            )
     if only in (None, "attitude"):
         for rep in attitude.REPRESENTATIONS:
             prob, ctrl, a0 = attitude.case(rep, 8)
@@ -63,13 +81,16 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--only", choices=["earth-mars", "sail", "attitude"])
     args = p.parse_args(argv)
-    print("| problem | solver | SUCCESS / starts | other outcomes | objective spread | "
-          "max proj. grad. (SUCCESS) | time [s] |")
+    print(
+        "| problem | solver | SUCCESS / starts | other outcomes | objective spread | "
+        "max proj. grad. (SUCCESS) | time [s] |"
+    )
     print("|---|---|---:|---|---:|---:|---:|")
     for label, name, prob, ctrl, a0, solver, sim, max_steps, unit in cases(args.only):
         t = time.perf_counter()
-        sols = jt.solve_batch(prob, ctrl, starts(a0), solver, simulator=sim, max_steps=max_steps, progress=False,
-                              history=False)
+        sols = jt.solve_batch(
+            prob, ctrl, starts(a0), solver, simulator=sim, max_steps=max_steps, progress=False, history=False
+        )
         elapsed = time.perf_counter() - t
         names = jt.status_name(sols.status)
         ok = names == "SUCCESS"
@@ -77,8 +98,11 @@ def main(argv=None):
         objective = np.asarray(sols.objective) * unit
         spread = np.ptp(objective[ok]) if ok.any() else float("nan")
         pg = np.max(np.asarray(sols.projected_gradient)[ok]) if ok.any() else float("nan")
-        print(f"| {label} | {name} | {ok.sum()} / {len(names)} | {others} | {spread:.1e} | {pg:.1e} | {elapsed:.0f} |",
-              flush=True)
+        print(
+            f"| {label} | {name} | {ok.sum()} / {len(names)} | {others} | {spread:.1e} | {pg:.1e} | {elapsed:.0f} |",
+            flush=True,
+        )
+
 
 if __name__ == "__main__":
     main()

@@ -32,11 +32,15 @@ def best_time(fn, repeats=3):
 
 
 def main():
-    print(f"# KalmanSearch solve benchmark — {platform.machine()}, {os.cpu_count()} cores, "
-          f"jax {jax.__version__}, x64, RK4(100)")
+    print(
+        f"# KalmanSearch solve benchmark — {platform.machine()}, {os.cpu_count()} cores, "
+        f"jax {jax.__version__}, x64, RK4(100)"
+    )
     print()
-    print("| case | status | integrations | first call [s] | warm solve [s] | per integration [ms] "
-          "| one evaluation [ms] | share outside integration + Jacobians |")
+    print(
+        "| case | status | integrations | first call [s] | warm solve [s] | per integration [ms] "
+        "| one evaluation [ms] | share outside integration + Jacobians |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     sim = jt.RK4()
     for n in range(1, 8):
@@ -50,8 +54,11 @@ def main():
         t_eval = best_time(lambda: ev(a0), repeats=20)
         k = int(sol.integrations)
         share = max(0.0, 1.0 - k * t_eval / warm)
-        print(f"| {n} | {jt.status_name(sol.status)} | {k} | {first:.1f} | {warm:.3f} | {warm / k * 1e3:.2f} "
-              f"| {t_eval * 1e3:.2f} | {share:.0%} |", flush=True)
+        print(
+            f"| {n} | {jt.status_name(sol.status)} | {k} | {first:.1f} | {warm:.3f} | {warm / k * 1e3:.2f} "
+            f"| {t_eval * 1e3:.2f} | {share:.0%} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -77,7 +77,9 @@ REL_AGREEMENT = 1e-4  # quaternion vs Euler objectives, relative (issue 8)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--segments", "-P", type=int, default=8, help="torque segments P (default 8)")
     p.add_argument("--rk4-steps", type=int, default=20, help="RK4 steps per segment (default 20)")
     p.add_argument("--grid-factor", type=int, default=10, help="refinement of the cone check grid (default 10)")
@@ -173,15 +175,21 @@ def _row(slew, rep, key, start, prob50, sol, wall, diag):
 
 def _unc_reference(rows, rep):
     """The unconstrained energy of `rep` (the best successful unconstrained row)."""
-    vals = [r["objective"] for r in rows if r["slew"] == "unconstrained" and r["representation"] == rep and r["status"] == "SUCCESS"]
+    vals = [
+        r["objective"]
+        for r in rows
+        if r["slew"] == "unconstrained" and r["representation"] == rep and r["status"] == "SUCCESS"
+    ]
     return min(vals) if vals else None
 
 
 def table(rows):
     lines = [
-        ("| slew | repr. | solver (start) | status | energy [(mN m)^2 100 s] | energy [N^2 m^2 s] | vs unconstr. "
-        "| worst cone margin [deg] (10x grid) at t [s] | max C (solver grid) | max abs E (solver / 10x grid) "
-        "| proj. grad. | iterations | integrations | warm wall [s] |"),
+        (
+            "| slew | repr. | solver (start) | status | energy [(mN m)^2 100 s] | energy [N^2 m^2 s] | vs unconstr. "
+            "| worst cone margin [deg] (10x grid) at t [s] | max C (solver grid) | max abs E (solver / 10x grid) "
+            "| proj. grad. | iterations | integrations | warm wall [s] |"
+        ),
         "|" + "---|" * 14,
     ]
     for r in rows:
@@ -275,7 +283,13 @@ def sky_figure(path, prob50, cone_deg, curves):
     circle = np.linspace(0, 2 * np.pi, 721)
     rho_c = 2 * np.tan(np.radians(cone_deg) / 2)
     ax0.fill(rho_c * np.cos(circle), rho_c * np.sin(circle), color="gold", alpha=0.25, lw=0)
-    ax0.plot(rho_c * np.cos(circle), rho_c * np.sin(circle), color="darkorange", lw=1.2, label=f"{cone_deg:g} deg keep-out cone")
+    ax0.plot(
+        rho_c * np.cos(circle),
+        rho_c * np.sin(circle),
+        color="darkorange",
+        lw=1.2,
+        label=f"{cone_deg:g} deg keep-out cone",
+    )
     ax0.plot([0], [0], "*", color="orange", ms=14, label="sun direction")
     ax1.axhspan(0, cone_deg, color="gold", alpha=0.25, lw=0)
     ax1.axhline(cone_deg, color="darkorange", lw=1.2, label=f"cone boundary ({cone_deg:g} deg)")
@@ -297,7 +311,9 @@ def sky_figure(path, prob50, cone_deg, curves):
     ax0.set_ylim(-lim, lim)
     ax0.set_aspect("equal")
     ax0.grid(alpha=0.3)
-    ax0.set_title("boresight on the sky: stereographic projection\ncentred on the sun (radius 2 tan(angle/2))", fontsize=10)
+    ax0.set_title(
+        "boresight on the sky: stereographic projection\ncentred on the sun (radius 2 tan(angle/2))", fontsize=10
+    )
     ax0.legend(fontsize=7, loc="lower left")
     lo = min(float(np.min(t)) for t in thetas)
     hi = max(float(np.max(t)) for t in thetas)
@@ -364,7 +380,9 @@ def main(argv=None):
         for key in ("al", "sqp"):  # AL first: its optimum is one of KalmanSQP's starts
             if key not in args.solvers:
                 continue
-            compiled, compile_times[f"{rep}/{SOLVERS[key]}"] = compile_solve(prob50, ctrl, _solver(key), sim, args.max_steps)
+            compiled, compile_times[f"{rep}/{SOLVERS[key]}"] = compile_solve(
+                prob50, ctrl, _solver(key), sim, args.max_steps
+            )
             runs = [("unconstrained", "rest", prob_unc, a_rest), ("constrained", "rest", prob50, a_rest)]
             if key == "sqp":
                 runs.append(("constrained", "own unconstrained optimum", prob50, None))
@@ -433,11 +451,19 @@ def main(argv=None):
             traj = trajs.get(("constrained", rep, key, "rest"))
             if traj is None:
                 continue
-            row = next(x for x in rows if (x["slew"], x["representation"], x["solver_key"], x["start"]) == ("constrained", rep, key, "rest"))
+            row = next(
+                x
+                for x in rows
+                if (x["slew"], x["representation"], x["solver_key"], x["start"]) == ("constrained", rep, key, "rest")
+            )
             good = row["status"] == "SUCCESS"
             label = f"constrained, {rep}, {SOLVERS[key]} from rest ({row['status']}, energy {row['objective']:.4g})"
-            style = {"color": colors[rep, key], "ls": ("-" if rep == "quaternion" else "--") if good else ":",
-                         "lw": 1.8 if good else 1.1, "alpha": 1.0 if good else 0.75}
+            style = {
+                "color": colors[rep, key],
+                "ls": ("-" if rep == "quaternion" else "--") if good else ":",
+                "lw": 1.8 if good else 1.1,
+                "alpha": 1.0 if good else 0.75,
+            }
             sky.append((label, prob, traj, style))
             rates.append((label, traj, style))
     if sky:
@@ -450,7 +476,9 @@ def main(argv=None):
 
     with open(os.path.join(args.out, "results.md"), "w") as f:
         f.write("# Satellite reorientation with a sun keep-out cone (seed 002): quaternion vs Euler, two solvers\n\n")
-        f.write(f"Command arguments: `{' '.join(argv) if argv is not None else ''}` (defaults otherwise); total {total:.0f} s; ")
+        f.write(
+            f"Command arguments: `{' '.join(argv) if argv is not None else ''}` (defaults otherwise); total {total:.0f} s; "
+        )
         f.write(f"{platform.processor() or platform.machine()}, jax {jax.__version__}.\n\n")
         f.write("\n".join(lines) + "\n\nFigures: " + ", ".join(figs) + "\n")
     record = {

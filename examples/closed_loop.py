@@ -195,11 +195,7 @@ def main(argv=None):
     P_open = np.asarray(lin.predict_covariance()[-1])
     P_closed = np.asarray(lin.predict_covariance(gains)[-1])
 
-    corr = (
-        "white per sample"
-        if args.correlation_time == 0
-        else f"correlation time {args.correlation_time}"
-    )
+    corr = "white per sample" if args.correlation_time == 0 else f"correlation time {args.correlation_time}"
     header = (
         f"Earth-Mars case 5 (KalmanSQP optimum, tf = {tf:.5f}), N = {args.n} runs per loop, "
         f"thrust-magnitude error {100 * args.sigma_thrust:g} % and pointing error "
@@ -232,9 +228,7 @@ def main(argv=None):
             "linear_covariance": P_closed.tolist(),
             "correction_rms_rad": float(np.sqrt(np.mean(np.asarray(closed.correction_rms) ** 2))),
         },
-        "trace_ratio": float(
-            np.trace(closed.terminal_covariance) / np.trace(open_.terminal_covariance)
-        ),
+        "trace_ratio": float(np.trace(closed.terminal_covariance) / np.trace(open_.terminal_covariance)),
         "machine": f"{platform.processor() or platform.machine()}, jax {jax.__version__}",
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -87,27 +87,50 @@ COLLAPSED = 1e-8  # a segment shorter than this [time units] has collapsed
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--targets", nargs="+", choices=TARGETS, default=list(TARGETS))
-    p.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="methods to run (default: all)")
+    p.add_argument(
+        "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="methods to run (default: all)"
+    )
     p.add_argument("--segments", "-P", type=int, default=10, help="spline segments P (default 10)")
     p.add_argument("--degree", "-p", type=int, default=1, choices=(0, 1, 2, 3), help="spline degree p (default 1)")
     p.add_argument("--rk4-steps", type=int, default=100, help="RK4 steps per segment, every method (default 100)")
     p.add_argument("--seeds", type=int, default=5, help="PRNG seeds per metaheuristic (default 5)")
     p.add_argument("--population", type=int, default=30, help="population size (default 30)")
     p.add_argument("--generations", type=int, default=200, help="generations (default 200)")
-    p.add_argument("--penalty-weight", type=float, default=ss.DEFAULT_WEIGHTS[1],
-                   help="lambda_2 = lambda_3 = lambda_4 of the penalty (lambda_1 = 1 per day; default 1e10)")
-    p.add_argument("--pitches", type=float, nargs="+", default=[20.0, 35.0, 50.0],
-                   help="constant starting pitches [deg], sign set by the target (default 20 35 50)")
-    p.add_argument("--tf-factors", type=float, nargs="+", default=[0.8, 1.0, 1.3],
-                   help="starting tf as multiples of TF_BOX[target] / 2 (default 0.8 1.0 1.3)")
+    p.add_argument(
+        "--penalty-weight",
+        type=float,
+        default=ss.DEFAULT_WEIGHTS[1],
+        help="lambda_2 = lambda_3 = lambda_4 of the penalty (lambda_1 = 1 per day; default 1e10)",
+    )
+    p.add_argument(
+        "--pitches",
+        type=float,
+        nargs="+",
+        default=[20.0, 35.0, 50.0],
+        help="constant starting pitches [deg], sign set by the target (default 20 35 50)",
+    )
+    p.add_argument(
+        "--tf-factors",
+        type=float,
+        nargs="+",
+        default=[0.8, 1.0, 1.3],
+        help="starting tf as multiples of TF_BOX[target] / 2 (default 0.8 1.0 1.3)",
+    )
     p.add_argument("--max-steps", type=int, default=600, help="candidate integrations per start (default 600)")
-    p.add_argument("--sqp-hessian", choices=("bfgs", "exact"), default="bfgs", help="KalmanSQP's Hessian (default bfgs)")
+    p.add_argument(
+        "--sqp-hessian", choices=("bfgs", "exact"), default="bfgs", help="KalmanSQP's Hessian (default bfgs)"
+    )
     p.add_argument("--slsqp-maxiter", type=int, default=150, help="SLSQP iteration limit (default 150)")
     p.add_argument("--out", default=os.path.join("results", "solar_sail"), help="output folder")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke run: P = 4, RK4(20), 2 starts, 60 steps, 2 seeds x 10 x 8 (overrides those flags)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: P = 4, RK4(20), 2 starts, 60 steps, 2 seeds x 10 x 8 (overrides those flags)",
+    )
     args = p.parse_args(argv)
     if args.quick:
         args.segments, args.rk4_steps = 4, 20
@@ -452,10 +475,23 @@ def figures(out, target, results, ind, ctrl, sim, weights):
     circle = np.linspace(0.0, 2.0 * np.pi, 361)
     r_f = ss.TARGET_RADII[target]
     ax.plot(np.cos(circle), np.sin(circle), color="0.55", lw=1, ls="--", label="Earth's orbit (r = 1 AU)")
-    ax.plot(r_f * np.cos(circle), r_f * np.sin(circle), color="C3", lw=1, ls="--", label=f"{target.title()}'s orbit (r = {r_f:g} AU)")
+    ax.plot(
+        r_f * np.cos(circle),
+        r_f * np.sin(circle),
+        color="C3",
+        lw=1,
+        ls="--",
+        label=f"{target.title()}'s orbit (r = {r_f:g} AU)",
+    )
     if ind is not None:
-        ax.plot(ind.x[:, 0] * np.cos(ind.x[:, 1]), ind.x[:, 0] * np.sin(ind.x[:, 1]), color="0.5", lw=5, alpha=0.4,
-                label=f"indirect optimum, {ind.tf_days:.2f} d")
+        ax.plot(
+            ind.x[:, 0] * np.cos(ind.x[:, 1]),
+            ind.x[:, 0] * np.sin(ind.x[:, 1]),
+            color="0.5",
+            lw=5,
+            alpha=0.4,
+            label=f"indirect optimum, {ind.tf_days:.2f} d",
+        )
     for m, color in ((grad, "C0"), (pop, "C1")):
         if m is None:
             continue
@@ -481,14 +517,27 @@ def figures(out, target, results, ind, ctrl, sim, weights):
     # pitch programs (the best run of every method)
     fig, ax = plt.subplots(figsize=(9, 5))
     if ind is not None:
-        ax.plot(ind.t * ss.DAYS_PER_UNIT, np.degrees(ind.alpha), color="0.5", lw=5, alpha=0.4,
-                label=f"indirect optimum, {ind.tf_days:.1f} d")
+        ax.plot(
+            ind.t * ss.DAYS_PER_UNIT,
+            np.degrees(ind.alpha),
+            color="0.5",
+            lw=5,
+            alpha=0.4,
+            label=f"indirect optimum, {ind.tf_days:.1f} d",
+        )
     for i, m in enumerate(ms):
         b = m.runs[m.best]
         t, _, alpha = _trajectory(target, ctrl, b.params, sim)
         flag = f" [{', '.join(b.diag['flags'])}]" if b.diag["flags"] else ""
         style = "-" if METHODS[m.key][1] == "gradient" else "--"
-        ax.plot(t * ss.DAYS_PER_UNIT, alpha, color=f"C{i}", lw=1.5, ls=style, label=f"{m.label}, {b.tf * ss.DAYS_PER_UNIT:.1f} d{flag}")
+        ax.plot(
+            t * ss.DAYS_PER_UNIT,
+            alpha,
+            color=f"C{i}",
+            lw=1.5,
+            ls=style,
+            label=f"{m.label}, {b.tf * ss.DAYS_PER_UNIT:.1f} d{flag}",
+        )
     ax.axhline(90, color="0.7", lw=0.8)
     ax.axhline(-90, color="0.7", lw=0.8)
     ax.set_xlabel("time [days]")
@@ -514,10 +563,18 @@ def figures(out, target, results, ind, ctrl, sim, weights):
             h = m.history  # (seeds, generations)
             evals = m.population * (np.arange(h.shape[1]) + 2)  # initial population + one per generation
             ax.fill_between(evals, np.min(h, axis=0), np.max(h, axis=0), color=f"C{i}", alpha=0.15)
-            ax.plot(evals, np.median(h, axis=0), color=f"C{i}", lw=1.8, label=f"{m.label} (median, range over {h.shape[0]} seeds)")
+            ax.plot(
+                evals,
+                np.median(h, axis=0),
+                color=f"C{i}",
+                lw=1.8,
+                label=f"{m.label} (median, range over {h.shape[0]} seeds)",
+            )
         if grad is not None:
             b = grad.runs[grad.best]
-            J = weights[0] * b.tf * ss.DAYS_PER_UNIT + float(np.sum(np.asarray(weights[1:]) * np.asarray(b.diag["miss"]) ** 2))
+            J = weights[0] * b.tf * ss.DAYS_PER_UNIT + float(
+                np.sum(np.asarray(weights[1:]) * np.asarray(b.diag["miss"]) ** 2)
+            )
             ax.axhline(J, color="k", lw=1, ls="--", label=f"penalty at the {grad.label} solution ({J:.2f})")
         ax.set_yscale("log")
         ax.set_xlabel("penalty evaluations (one integration each)")
@@ -555,7 +612,10 @@ def main(argv=None):
     if "indirect" in methods:
         for t in args.targets:
             indirect[t] = ss.solve_indirect(t)
-            print(f"  indirect {t}: {indirect[t].tf_days:.4f} d ({'converged' if indirect[t].success else 'NOT converged'})", flush=True)
+            print(
+                f"  indirect {t}: {indirect[t].tf_days:.4f} d ({'converged' if indirect[t].success else 'NOT converged'})",
+                flush=True,
+            )
 
     def floor(t):
         ind = indirect[t]
@@ -599,7 +659,9 @@ def main(argv=None):
     checker = jt.Diffrax(rtol=1e-12, atol=1e-12)
     for m in results:
         b = m.runs[m.best]
-        m.adaptive_miss = float(np.max(np.asarray(ss.terminal_miss(target_problem(m.target), ctrl, b.params, simulator=checker))))
+        m.adaptive_miss = float(
+            np.max(np.asarray(ss.terminal_miss(target_problem(m.target), ctrl, b.params, simulator=checker)))
+        )
 
     summary = summary_rows(results, indirect)
     details = detail_rows(results)
@@ -629,7 +691,9 @@ def main(argv=None):
 
     with open(os.path.join(args.out, "results.md"), "w") as f:
         f.write("# Solar-sail transfers (seed 003): gradient solvers vs metaheuristics\n\n")
-        f.write(f"Command arguments: `{' '.join(argv) if argv is not None else ''}` (defaults otherwise); total {total:.0f} s.\n\n")
+        f.write(
+            f"Command arguments: `{' '.join(argv) if argv is not None else ''}` (defaults otherwise); total {total:.0f} s.\n\n"
+        )
         f.write("\n".join(summary + notes) + "\n\n## Every start and seed\n\n" + "\n".join(details) + "\n\n")
         f.write("Figures: " + ", ".join(figs) + "\n")
     record = {
@@ -637,7 +701,9 @@ def main(argv=None):
         "compile_times": compile_times,
         "total_seconds": total,
         "indirect": {
-            t: None if r is None else {"tf": r.tf, "tf_days": r.tf_days, "success": r.success, "residual": r.residual.tolist()}
+            t: None
+            if r is None
+            else {"tf": r.tf, "tf_days": r.tf_days, "success": r.success, "residual": r.residual.tolist()}
             for t, r in indirect.items()
         },
         "results": [

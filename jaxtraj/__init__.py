@@ -21,11 +21,11 @@ if "--xla_backend_extra_options" not in _os.environ.get("XLA_FLAGS", "") and not
         + " --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
     ).strip()
 
-import jax as _jax  # noqa: E402
+import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import (  # noqa: E402
+from . import (
     controls as controls,
     feedback as feedback,
     io as io,
@@ -33,23 +33,33 @@ from . import (  # noqa: E402
     problems as problems,
     rotations as rotations,
 )
-from ._problem import Problem as Problem, minimum_time as minimum_time  # noqa: E402
-from ._sensitivity import (  # noqa: E402
+from ._augmented_lagrangian import AugmentedLagrangian as AugmentedLagrangian
+from ._batch import (
+    MultistartResult as MultistartResult,
+    multistart as multistart,
+    random_starts as random_starts,
+    solve_batch as solve_batch,
+)
+from ._driver import AbstractSolver as AbstractSolver
+from ._kalman_search import KalmanSearch as KalmanSearch
+from ._kalman_sqp import KalmanSQP as KalmanSQP
+from ._problem import Problem as Problem, minimum_time as minimum_time
+from ._sensitivity import (
     Evaluation as Evaluation,
     evaluate as evaluate,
     sensitivities as sensitivities,
 )
-from ._simulate import (  # noqa: E402
+from ._simulate import (
     RK4 as RK4,
     AbstractSimulator as AbstractSimulator,
     Diffrax as Diffrax,
     Trajectory as Trajectory,
     simulate as simulate,
 )
-from ._kalman_search import KalmanSearch as KalmanSearch  # noqa: E402
-from ._kalman_sqp import KalmanSQP as KalmanSQP  # noqa: E402
-from ._augmented_lagrangian import AugmentedLagrangian as AugmentedLagrangian  # noqa: E402
-from .feedback import (  # noqa: E402
+from ._solution import History as History, Solution as Solution
+from ._solve import solve as solve
+from ._status import Status as Status, status_name as status_name
+from .feedback import (
     ClosedLoopTrajectory as ClosedLoopTrajectory,
     ControlErrors as ControlErrors,
     Dispersion as Dispersion,
@@ -63,15 +73,6 @@ from .feedback import (  # noqa: E402
     simulate_closed_loop as simulate_closed_loop,
     tracking_lqr as tracking_lqr,
 )
-from .metaheuristics import Dragonfly as Dragonfly, GreyWolf as GreyWolf, Whale as Whale  # noqa: E402
-from ._solution import History as History, Solution as Solution  # noqa: E402
-from ._solve import AbstractSolver as AbstractSolver, solve as solve  # noqa: E402
-from ._batch import (  # noqa: E402
-    MultistartResult as MultistartResult,
-    multistart as multistart,
-    random_starts as random_starts,
-    solve_batch as solve_batch,
-)
-from ._status import Status as Status, status_name as status_name  # noqa: E402
+from .metaheuristics import Dragonfly as Dragonfly, GreyWolf as GreyWolf, Whale as Whale
 
 __version__ = "0.1.0"

@@ -84,9 +84,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ._driver import AbstractSolver
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
-from ._solve import AbstractSolver
 from ._status import Status
 from .controls import PiecewiseConstant, PiecewiseLinear, PiecewiseParabolic, SaturatedSpline
 
@@ -387,9 +387,7 @@ class AugmentedLagrangian(AbstractSolver):
         if self.inner not in ("lbfgs", "adam"):
             raise ValueError(f"AugmentedLagrangian: `inner` must be 'lbfgs' or 'adam'; got {self.inner!r}.")
         if self.method not in ("forward", "unit", "fd"):
-            raise ValueError(
-                f"AugmentedLagrangian: `method` must be 'forward', 'unit' or 'fd'; got {self.method!r}."
-            )
+            raise ValueError(f"AugmentedLagrangian: `method` must be 'forward', 'unit' or 'fd'; got {self.method!r}.")
 
         def is_int(v, low):
             return isinstance(v, int) and not isinstance(v, bool) and v >= low
@@ -416,7 +414,9 @@ class AugmentedLagrangian(AbstractSolver):
         }
         for name, ok in checks.items():
             if not ok:
-                raise ValueError(f"AugmentedLagrangian: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+                raise ValueError(
+                    f"AugmentedLagrangian: invalid `{name}` = {getattr(self, name)!r} (see the field docs)."
+                )
 
     # ------------------------------------------------------------------ pieces
 
@@ -478,7 +478,9 @@ class AugmentedLagrangian(AbstractSolver):
         ev = self._evaluate(problem, control, a, simulator)
         m = self._initial_multipliers(ev)
         value, grad = augmented_lagrangian(ev, m)
-        ok = (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(a))
+        ok = (
+            (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad)) & jnp.all(jnp.isfinite(a))
+        )
         metric = self._metric(ev, m, a, grad, box)
         f = jnp.float64
         hist = History.empty(max_steps)
@@ -502,7 +504,9 @@ class AugmentedLagrangian(AbstractSolver):
             num_integrations=jnp.array(1, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
             done=~ok,
-            status=Status.where(ok, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)),
+            status=Status.where(
+                ok, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
+            ),
             history=hist,
         )
 
@@ -554,7 +558,7 @@ class AugmentedLagrangian(AbstractSolver):
             accept = finite & (cand_value <= state.value + slack)
         else:
             accept = finite
-        pick = lambda new, old: jax.tree.map(lambda n, o: jnp.where(accept, n, o), new, old)  # noqa: E731
+        pick = lambda new, old: jax.tree.map(lambda n, o: jnp.where(accept, n, o), new, old)
         new_a = pick(cand_a, a)
         ev = pick(cand, state.ev)
         value, grad = pick(cand_value, state.value), pick(cand_grad, state.grad)
@@ -594,7 +598,7 @@ class AugmentedLagrangian(AbstractSolver):
         value_outer, grad_outer = augmented_lagrangian(ev, m_outer)  # no integration
         metric_outer = self._metric(ev, m_outer, new_a, grad_outer, box)
         outer = inner_done & ~converged & ~stalled
-        sel = lambda new, old: jax.tree.map(lambda n, o: jnp.where(outer, n, o), new, old)  # noqa: E731
+        sel = lambda new, old: jax.tree.map(lambda n, o: jnp.where(outer, n, o), new, old)
         m_new, metric_new = sel(m_outer, m), sel(metric_outer, metric)
         value, grad = sel(value_outer, value), sel(grad_outer, grad)
         opt_state = sel(self._init_opt(z), opt_state)  # new coordinates: a fresh memory

@@ -73,10 +73,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from . import io as _io
+from ._driver import AbstractSolver, init_state, run, run_loop
 from ._simulate import (
     RK4,
     AbstractSimulator,
@@ -84,7 +84,7 @@ from ._simulate import (
     check_simulator,
 )
 from ._solution import Solution
-from ._solve import AbstractSolver, _check_solver, _init, _loop, _run
+from ._solve import check_solver
 from ._status import STATUS_NAMES, Status
 from .controls import (
     AbstractControl,
@@ -191,10 +191,10 @@ def _solve_chunk(solver, problem, control, a0s, simulator, max_steps, mesh, keep
 
         if lanes == 1:  # no vmap: the solver's lax.cond stay real branches
             return lax.map(
-                lambda a: finish(_loop(solver, problem, control, a, simulator, max_steps, history=keep_history)), a0s
+                lambda a: finish(run_loop(solver, problem, control, a, simulator, max_steps, history=keep_history)), a0s
             )
         return _solve_queue(
-            lambda a: _init(solver, problem, control, a, simulator, max_steps, keep_history),
+            lambda a: init_state(solver, problem, control, a, simulator, max_steps, keep_history),
             lambda s: solver.step(problem, control, simulator, s),
             finish,
             a0s,
@@ -202,15 +202,13 @@ def _solve_chunk(solver, problem, control, a0s, simulator, max_steps, mesh, keep
             min(lanes, a0s.shape[0]),
         )
 
-    return jax.shard_map(local, mesh=mesh, in_specs=(P(), P(_AXIS)), out_specs=P(_AXIS), check_vma=False)(
-        params, a0s
-    )
+    return jax.shard_map(local, mesh=mesh, in_specs=(P(), P(_AXIS)), out_specs=P(_AXIS), check_vma=False)(params, a0s)
 
 
 def _template(solver, problem, control, num_params, simulator, max_steps, keep_history):
     """Tree structure and per-start leaf shapes/dtypes of one start's `Solution`."""
     a = jax.ShapeDtypeStruct((num_params,), jnp.float64)
-    shape = eqx.filter_eval_shape(_run, solver, problem, control, a, simulator, max_steps)
+    shape = eqx.filter_eval_shape(run, solver, problem, control, a, simulator, max_steps)
     if not keep_history:
         shape = eqx.tree_at(
             lambda s: s.history, shape, jax.tree.map(lambda x: jax.ShapeDtypeStruct((0,), x.dtype), shape.history)
@@ -268,7 +266,9 @@ def _read_chunk(out, k, rows, spec):
     with np.load(path) as data:
         leaves = [data[f"leaf_{i:03d}"] for i in range(len(spec))] if len(data.files) == len(spec) else None
     if leaves is None or any(x.shape != (rows, *s) or x.dtype != d for x, (s, d) in zip(leaves, spec)):
-        raise ValueError(f"`out`: {path} does not hold {rows} solutions of this batch's layout; delete it to recompute it.")
+        raise ValueError(
+            f"`out`: {path} does not hold {rows} solutions of this batch's layout; delete it to recompute it."
+        )
     return leaves
 
 
@@ -329,7 +329,9 @@ def _check_a0s(control, a0s):
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
         raise ValueError(f"`a0s` must be a real numeric array; got dtype {arr.dtype}.")
     if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] != control.num_params:
-        raise ValueError(f"`a0s` must have shape (N, {control.num_params}) with N >= 1 for {control!r}; got {arr.shape}.")
+        raise ValueError(
+            f"`a0s` must have shape (N, {control.num_params}) with N >= 1 for {control!r}; got {arr.shape}."
+        )
     return np.ascontiguousarray(arr, dtype=np.float64)
 
 
@@ -381,7 +383,7 @@ def solve_batch(
     **Raises:** `ValueError` for bad arguments (outside jit), or when `out` holds a run with
     other inputs (`resume=True`) or any run (`resume=False`).
     """
-    solver = _check_solver(solver, max_steps)
+    solver = check_solver(solver, max_steps)
     check_problem_and_control(problem, control)
     check_simulator(simulator)
     a0s = _check_a0s(control, a0s)
@@ -429,8 +431,11 @@ def solve_batch(
     )
     show = progress and writer
     if show and on_disk:
-        print(f"solve_batch: resuming {out}: {len(on_disk)}/{num_chunks} chunk(s) already done, loading them",
-              file=sys.stderr, flush=True)
+        print(
+            f"solve_batch: resuming {out}: {len(on_disk)}/{num_chunks} chunk(s) already done, loading them",
+            file=sys.stderr,
+            flush=True,
+        )
     results = None
     success = solved = 0
     t_start = time.perf_counter()
@@ -678,4 +683,4 @@ def multistart(
     return MultistartResult(starts, sols, ok, best, optima, float(tol), wall)
 
 
-__all__ = ["solve_batch", "multistart", "random_starts", "MultistartResult"]
+__all__ = ["MultistartResult", "multistart", "random_starts", "solve_batch"]

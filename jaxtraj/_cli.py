@@ -7,8 +7,8 @@ No JAX work at import time; every failure the user can cause ends in a one-line
 import argparse
 import contextlib
 import datetime
-import json
 import io as io_module
+import json
 import os
 import sys
 import time
@@ -41,17 +41,28 @@ def _parser():
     g = s.add_mutually_exclusive_group()
     g.add_argument("--case", type=int, help="earth-mars: published thesis case 1..7 (default 4)")
     g.add_argument("--control", help=f"control spec: {_CONTROLS}")
-    s.add_argument("--solver", default="kalman",
-                   help="kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
-                        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region; "
-                        "problems without path constraints)")
+    s.add_argument(
+        "--solver",
+        default="kalman",
+        help="kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
+        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region; "
+        "problems without path constraints)",
+    )
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
-    s.add_argument("--monte-carlo", type=int, default=0, metavar="N",
-                   help="after the solve: N noisy runs (1%% thrust magnitude, 1 deg pointing), open loop vs "
-                        "time-varying LQR closed loop (earth-mars)")
-    s.add_argument("--resume", action="store_true",
-                   help="with --starts > 1 and the --out of an interrupted run: skip the chunks already solved")
+    s.add_argument(
+        "--monte-carlo",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after the solve: N noisy runs (1%% thrust magnitude, 1 deg pointing), open loop vs "
+        "time-varying LQR closed loop (earth-mars)",
+    )
+    s.add_argument(
+        "--resume",
+        action="store_true",
+        help="with --starts > 1 and the --out of an interrupted run: skip the chunks already solved",
+    )
     s.add_argument("--steps", type=int, default=100, help="RK4 steps per segment")
     s.add_argument("--max-steps", type=int, default=5000, help="cap on candidate integrations")
     s.add_argument("--out", help="result folder (default results/<problem>-<timestamp>)")
@@ -123,7 +134,14 @@ def _setup(problem_name, args):
         raise _UsageError("--case applies to earth-mars only")
     prob = jt.problems.analytic.min_energy_double_integrator()
     ctrl = parse_control(args.control or "linear:3")
-    return prob, ctrl, jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)), jt.KalmanSearch(), args.control or "linear:3", None
+    return (
+        prob,
+        ctrl,
+        jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)),
+        jt.KalmanSearch(),
+        args.control or "linear:3",
+        None,
+    )
 
 
 def _enable_compilation_cache():
@@ -165,10 +183,15 @@ def _monte_carlo(prob, ctrl, sol, sim, args):
     lin = jt.linearize(prob, ctrl, sol.params, simulator=sim, execution=errors)
     gains = jt.tracking_lqr(lin, *jt.bryson_weights(lin, 1e-3, 0.05, 1e-4))
     key = jax.random.key(args.seed)
-    print(f"Monte Carlo: {args.monte_carlo} runs each, 1 % thrust magnitude and 1 deg pointing errors "
-          "(white per control sample), LQR with Bryson weights", flush=True)
-    runs = {name: jt.monte_carlo(prob, ctrl, sol.params, key, args.monte_carlo, gains=g, execution=errors,
-                                 simulator=sim) for name, g in (("open loop", None), ("closed loop", gains))}
+    print(
+        f"Monte Carlo: {args.monte_carlo} runs each, 1 % thrust magnitude and 1 deg pointing errors "
+        "(white per control sample), LQR with Bryson weights",
+        flush=True,
+    )
+    runs = {
+        name: jt.monte_carlo(prob, ctrl, sol.params, key, args.monte_carlo, gains=g, execution=errors, simulator=sim)
+        for name, g in (("open loop", None), ("closed loop", gains))
+    }
     print(f"  {'terminal error':<22}" + "".join(f"{n + ' mean':>18}{n + ' std':>18}" for n in runs))
     for i, name in enumerate(prob.constraint_names):
         row = "".join(f"{float(r.terminal_mean[i]):>18.3e}{float(r.terminal_std[i]):>18.3e}" for r in runs.values())
@@ -176,10 +199,21 @@ def _monte_carlo(prob, ctrl, sol, sim, args):
     traces = {n: float(np.trace(np.asarray(r.terminal_covariance))) for n, r in runs.items()}
     ratio = traces["closed loop"] / traces["open loop"]
     print(f"  covariance trace: open {traces['open loop']:.3e}, closed {traces['closed loop']:.3e} (ratio {ratio:.4f})")
-    return {"runs": args.monte_carlo, "sigma_thrust": 0.01, "sigma_pointing_deg": 1.0,
-            **{n: {"mean": np.asarray(r.terminal_mean).tolist(), "std": np.asarray(r.terminal_std).tolist(),
-                   "covariance_trace": traces[n], "failed": int(r.num_failed)} for n, r in runs.items()},
-            "trace_ratio": ratio}
+    return {
+        "runs": args.monte_carlo,
+        "sigma_thrust": 0.01,
+        "sigma_pointing_deg": 1.0,
+        **{
+            n: {
+                "mean": np.asarray(r.terminal_mean).tolist(),
+                "std": np.asarray(r.terminal_std).tolist(),
+                "covariance_trace": traces[n],
+                "failed": int(r.num_failed),
+            }
+            for n, r in runs.items()
+        },
+        "trace_ratio": ratio,
+    }
 
 
 def _solve(args):
@@ -227,41 +261,70 @@ def _solve(args):
         # --resume can pick an interrupted run up
         starts = np.array(jt.random_starts(prob, ctrl, jax.random.key(args.seed), args.starts, around=a0, spread=0.05))
         starts[0] = np.asarray(a0)
-        sols = jt.solve_batch(prob, ctrl, starts, solver, simulator=sim, max_steps=args.max_steps,
-                              chunk_size=-(-args.starts // 10), out=os.path.join(out, "batch"), resume=args.resume,
-                              history=False)
+        sols = jt.solve_batch(
+            prob,
+            ctrl,
+            starts,
+            solver,
+            simulator=sim,
+            max_steps=args.max_steps,
+            chunk_size=-(-args.starts // 10),
+            out=os.path.join(out, "batch"),
+            resume=args.resume,
+            history=False,
+        )
         ok = np.asarray(sols.status == jt.Status.SUCCESS)
         start = starts[int(np.argmin(np.where(ok, np.asarray(sols.objective), np.inf))) if ok.any() else 0]
-        print(f"  {int(ok.sum())} / {args.starts} starts successful ({time.perf_counter() - t0:.1f} s); "
-              "the best one again alone, for its history:", flush=True)
-    best = jax.block_until_ready(jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps,
-                                          progress=100))
+        print(
+            f"  {int(ok.sum())} / {args.starts} starts successful ({time.perf_counter() - t0:.1f} s); "
+            "the best one again alone, for its history:",
+            flush=True,
+        )
+    best = jax.block_until_ready(
+        jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps, progress=100)
+    )
     ok_count = int(best.status == jt.Status.SUCCESS) if sols is None else int(ok.sum())
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(io_module.StringIO()):  # the same compiled solve again, silenced
-        jax.block_until_ready(jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps,
-                                       progress=100))
+        jax.block_until_ready(
+            jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps, progress=100)
+        )
     second = time.perf_counter() - t0
     traj = jt.simulate(prob, ctrl, best.params, simulator=sim)
 
-    rows = [("status", jt.status_name(best.status)), ("successful starts", f"{ok_count} / {args.starts}"),
-            ("tf", f"{float(best.tf):.8f}"), ("objective", f"{float(best.objective):.8f}"),
-            ("max constraint error", f"{float(best.max_constraint_error):.2e}")]
+    rows = [
+        ("status", jt.status_name(best.status)),
+        ("successful starts", f"{ok_count} / {args.starts}"),
+        ("tf", f"{float(best.tf):.8f}"),
+        ("objective", f"{float(best.objective):.8f}"),
+        ("max constraint error", f"{float(best.max_constraint_error):.2e}"),
+    ]
     rows += [(f"  {n}", f"{e:+.2e}") for n, e in zip(prob.constraint_names, np.asarray(best.constraints))]
-    rows += [("projected gradient", f"{float(best.projected_gradient):.2e}"),
-             ("iterations / integrations", f"{int(best.iterations)} / {int(best.integrations)}"),
-             ("time (warm, best start)", f"{second:.3f} s"),
-             ("time (first call" + (", all starts" if sols is not None else "") + ", incl. compile)", f"{first:.2f} s")]
+    rows += [
+        ("projected gradient", f"{float(best.projected_gradient):.2e}"),
+        ("iterations / integrations", f"{int(best.iterations)} / {int(best.integrations)}"),
+        ("time (warm, best start)", f"{second:.3f} s"),
+        ("time (first call" + (", all starts" if sols is not None else "") + ", incl. compile)", f"{first:.2f} s"),
+    ]
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"  {k:<{width}}  {v}")
     if args.monte_carlo:
         summary_mc = _monte_carlo(prob, ctrl, best, sim, args)
-    inputs = {"problem": args.problem, "control": repr(ctrl), "label": label, "a0": np.asarray(a0),
-              "starts": args.starts, "seed": args.seed, "resume": args.resume, "rk4_steps": args.steps, "max_steps": args.max_steps,
-              "solver": repr(solver), "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__,
-                                                    "python": sys.version.split()[0]}}
+    inputs = {
+        "problem": args.problem,
+        "control": repr(ctrl),
+        "label": label,
+        "a0": np.asarray(a0),
+        "starts": args.starts,
+        "seed": args.seed,
+        "resume": args.resume,
+        "rk4_steps": args.steps,
+        "max_steps": args.max_steps,
+        "solver": repr(solver),
+        "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__, "python": sys.version.split()[0]},
+    }
     summary = io.save(out, prob, best, traj, inputs=inputs)
     if args.monte_carlo:
         summary["monte_carlo"] = summary_mc
@@ -269,13 +332,26 @@ def _solve(args):
         io.atomic_write(os.path.join(out, "summary.json"), lambda f: f.write(text))
     written = ["summary.json", "arrays.npz"]
     if not args.no_plot:
-        written += write_figures(out, prob, ctrl, best, traj, r_target=r_target,
-                                 title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}")
+        written += write_figures(
+            out,
+            prob,
+            ctrl,
+            best,
+            traj,
+            r_target=r_target,
+            title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}",
+        )
         if sols is not None:
             ok_idx = np.flatnonzero(ok)[:50]
             trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
-            batch_figure(os.path.join(out, "starts.png"), prob, sols.objective, ok, trajs,
-                         title=f"{args.problem} ({label}): {args.starts} starts")
+            batch_figure(
+                os.path.join(out, "starts.png"),
+                prob,
+                sols.objective,
+                ok,
+                trajs,
+                title=f"{args.problem} ({label}): {args.starts} starts",
+            )
             written.append("starts.png")
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1

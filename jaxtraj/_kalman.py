@@ -86,56 +86,6 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     return da * jnp.minimum(1.0, jnp.min(limit)), P
 
 
-def path_rows(ev):
-    """The path constraints of an `Evaluation` flattened to rows, `(C (N q,), C_a (N q, np))`,
-    or None for a problem without them."""
-    if ev.C is None:
-        return None
-    return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
-
-
-def constraint_rows(ev):
-    """[H; C_a]: the Jacobian of all constraints, terminal and path (flattened)."""
-    rows = path_rows(ev)
-    return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
-
-
-def active_rows(ev, tol):
-    """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
-    that the projected gradient of a KKT point has to be orthogonal to."""
-    rows = path_rows(ev)
-    if rows is None:
-        return ev.H
-    C, C_a = rows
-    return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
-
-
-def least_squares_multipliers(ev, path_active):
-    """Least-squares multipliers of E and of the path points with C >= -`path_active`
-    ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
-    converged point, the first active set is the touching one."""
-    A = active_rows(ev, path_active)
-    lam = jnp.linalg.lstsq(A.T, -ev.G_a)[0]
-    m = ev.E.shape[0]
-    return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
-
-
-def lagrangian_gradient(ev, lam):
-    """Gradient of the Lagrangian G + lambda^T [E; C] (terminal and path rows)."""
-    return ev.G_a + constraint_rows(ev).T @ lam
-
-
-def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
-    """`(converged, stalled)` of an SQP iteration: converged when `feasible` and the projected
-    gradient `pg` <= `gtol` (1 + |G|), or, once `no_progress` (round-off leaves no measurable
-    progress), <= `acceptable_gtol` (1 + |G|); stalled when progress ended short of that. The
-    second level keeps the outcome off the knife edge where the projected gradient's
-    round-off floor (set by the sensitivities) meets `gtol`."""
-    scale = 1.0 + jnp.abs(G)
-    converged = feasible & ((pg <= gtol * scale) | (no_progress & (pg <= acceptable_gtol * scale)))
-    return converged, ~converged & no_progress
-
-
 #: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already
 #: observed is below this fraction of its prior variance is skipped (KalmanSQP's
 #: `path_dependence`, KalmanSearch's fixed value).
@@ -177,5 +127,4 @@ def projection_matrix(H):
     return jnp.eye(p, dtype=H.dtype) - H.T @ jnp.linalg.solve(H @ H.T, H)
 
 
-__all__ = ["sequential_update", "keep_knots_ordered", "batch_update", "projection_matrix"]
-
+__all__ = ["batch_update", "keep_knots_ordered", "observe_worst", "projection_matrix", "sequential_update"]

@@ -64,18 +64,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._kalman import (
-    PATH_DEPENDENCE,
-    active_rows,
-    constraint_rows,
-    keep_knots_ordered,
-    observe_worst,
-    path_rows,
-    sequential_update,
-)
+from ._driver import AbstractSolver
+from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
+from ._kkt import active_rows, constraint_rows, path_rows, projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
-from ._solve import AbstractSolver
 from ._status import Status
 
 _ALPHAS = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03, 0.02, 0.01])
@@ -111,12 +104,6 @@ def _errors(ev: Evaluation, values):
     """The error vector of constraint values [E; C]: E and max(C, 0) (met: zero)."""
     m = ev.E.shape[0]
     return values if values.shape[0] == m else jnp.concatenate([values[:m], jnp.maximum(values[m:], 0.0)])
-
-
-def _projected_gradient(G_a, H):
-    """|V G_a|, V = I - H^T (H H^T)^-1 H [3.62] (least squares, robust to dependent rows)."""
-    lam, *_ = jnp.linalg.lstsq(H.T, G_a)
-    return jnp.linalg.norm(G_a - H.T @ lam)
 
 
 def _largest_alpha(ok_of_alpha, fallback):
@@ -240,9 +227,7 @@ class KalmanSearch(AbstractSolver):
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
             none = jnp.zeros(C.shape, bool)
             r_c = jnp.maximum(r, 1e-14 * prior_var)  # floored as r_obs
-            da, P1, _ = observe_worst(
-                da, P1, C, C_a, r_c, prior_var, PATH_DEPENDENCE, 0.0, none, none, da.shape[0]
-            )
+            da, P1, _ = observe_worst(da, P1, C, C_a, r_c, prior_var, PATH_DEPENDENCE, 0.0, none, none, da.shape[0])
         da2, P2 = keep_knots_ordered(da, P1, knots, dknots, self.a_t, self.gap_keep)  # appendix C
         return da2, P2, s_bar
 
@@ -255,7 +240,7 @@ class KalmanSearch(AbstractSolver):
         nE = jnp.linalg.norm(err_abs)
 
         def attempt(rho, beta, beta_p):
-            da, P1, s_bar = self._increment(ev, rho, beta, beta_p, phase, knots, dknots)
+            da, _P1, s_bar = self._increment(ev, rho, beta, beta_p, phase, knots, dknots)
             err_lin = _errors(ev, _values(ev) + constraint_rows(ev) @ da)  # [E; max(C, 0)], linearized
             capture_ok = jnp.all(jnp.abs(err_lin) <= err_abs + 10.0 * self.e_m) & (jnp.linalg.norm(err_lin) < nE)
             band_ok = jnp.all(jnp.abs(err_lin) <= self.f_ea * e_a)  # [4.14]
@@ -288,10 +273,7 @@ class KalmanSearch(AbstractSolver):
             m_rho = jnp.where(low & at_floor, rho * self.rho_increase, m_rho)
             m_beta = jnp.where(low, jnp.maximum(beta * self.beta_decrease, 1.0), m_beta)
             m_betap = jnp.where(low, jnp.maximum(beta_p * self.beta_decrease, 1.0), m_betap)
-            new = [
-                jnp.where(phase == 0, cv, mv)
-                for cv, mv in ((c_rho, m_rho), (c_beta, m_beta), (c_betap, m_betap))
-            ]
+            new = [jnp.where(phase == 0, cv, mv) for cv, mv in ((c_rho, m_rho), (c_beta, m_beta), (c_betap, m_betap))]
             new[0] = jnp.minimum(new[0], self.rho_max)
             keep = [jnp.where(ok, old, nv) for old, nv in zip((rho, beta, beta_p), new)]
             return (*keep, da, ok, tries + 1, s_bar)
@@ -403,7 +385,7 @@ class KalmanSearch(AbstractSolver):
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
-        pg = _projected_gradient(new_ev.G_a, active_rows(new_ev, e_a))
+        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, e_a))
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
         converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)
@@ -428,7 +410,9 @@ class KalmanSearch(AbstractSolver):
         status = Status.where(
             success,
             Status.SUCCESS,
-            Status.where(stalled, Status.STALLED, Status.where(stationary_fail, Status.CONSTRAINT_STATIONARY, Status.SUCCESS)),
+            Status.where(
+                stalled, Status.STALLED, Status.where(stationary_fail, Status.CONSTRAINT_STATIONARY, Status.SUCCESS)
+            ),
         )
         i = state.num_steps
         history = state.history.record(
@@ -476,7 +460,7 @@ class KalmanSearch(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=_projected_gradient(state.ev.G_a, active_rows(state.ev, state.e_a)),
+            projected_gradient=projected_gradient(state.ev.G_a, active_rows(state.ev, state.e_a)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

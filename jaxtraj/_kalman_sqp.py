@@ -86,22 +86,19 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import (
-    PATH_DEPENDENCE,
+from . import _trust_region
+from ._driver import AbstractSolver
+from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
+from ._kkt import (
     active_rows,
-    keep_knots_ordered,
     kkt_outcome,
     lagrangian_gradient,
     least_squares_multipliers,
-    observe_worst,
     path_rows,
-    sequential_update,
+    projected_gradient,
 )
-from . import _trust_region
-from ._kalman_search import _projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
-from ._solve import AbstractSolver
 from ._status import Status
 
 
@@ -120,7 +117,7 @@ def bfgs_update(B, s, y, damping=0.2):
     r = theta * y + (1.0 - theta) * Bs
     sr = s @ r
     ok = (sBs > 0) & (sr > 0) & jnp.isfinite(sBs) & jnp.all(jnp.isfinite(r))
-    safe = lambda v: jnp.where(ok, v, 1.0)  # noqa: E731
+    safe = lambda v: jnp.where(ok, v, 1.0)
     B1 = B - jnp.outer(Bs, Bs) / safe(sBs) + jnp.outer(r, r) / safe(sr)
     return jnp.where(ok, 0.5 * (B1 + B1.T), B)
 
@@ -512,7 +509,9 @@ class KalmanSQP(AbstractSolver):
             num_integrations=jnp.array(2, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
             done=~ok0,
-            status=Status.where(ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)),
+            status=Status.where(
+                ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
+            ),
             history=hist,
         )
 
@@ -544,7 +543,7 @@ class KalmanSQP(AbstractSolver):
         )
         fresh = ~state.searching
         B = jnp.where(fresh & reset, B_reset, state.B)
-        pick = lambda new, old: jnp.where(fresh, new, old)  # noqa: E731
+        pick = lambda new, old: jnp.where(fresh, new, old)
         d, dlam, lam = pick(d_new, state.d), pick(dlam_new, state.dlam), pick(lam_new, lam)
         mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
         alpha = jnp.where(fresh, 1.0, state.alpha)
@@ -594,7 +593,7 @@ class KalmanSQP(AbstractSolver):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E))
-        pg = _projected_gradient(new_ev.G_a, active_rows(new_ev, self.path_active))
+        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, self.path_active))
         feasible = (maxE <= self.ctol) & (_max_path(new_ev) <= self.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
@@ -668,7 +667,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=_projected_gradient(state.ev.G_a, active_rows(state.ev, self.path_active)),
+            projected_gradient=projected_gradient(state.ev.G_a, active_rows(state.ev, self.path_active)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -113,9 +113,7 @@ class Problem(eqx.Module):
         self.args = args
         n = x0.size
         self.state_names = tuple(state_names) if state_names else tuple(f"x{i + 1}" for i in range(n))
-        self.control_names = (
-            tuple(control_names) if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
-        )
+        self.control_names = tuple(control_names) if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
         self.control_lower = None if control_lower is None else _bound(control_lower, num_controls, "control_lower")
         self.control_upper = None if control_upper is None else _bound(control_upper, num_controls, "control_upper")
         self.path = path
@@ -150,7 +148,9 @@ class Problem(eqx.Module):
             ("objective(tf, xf, args)", lambda t, x, u: self.objective(t, x, self.args), ()),
         ]
         if self.path is not None:
-            checks.append(("path(t, x, u, args)", lambda t, x, u: self.path(t, x, u, self.args), (len(self.path_names),)))
+            checks.append(
+                ("path(t, x, u, args)", lambda t, x, u: self.path(t, x, u, self.args), (len(self.path_names),))
+            )
         for label, fn, shape in checks:
             out = jax.eval_shape(fn, t, x, u)
             if getattr(out, "shape", None) != shape:

@@ -169,7 +169,7 @@ def fd_jacobian(problem, control, a, simulator):
 _JACOBIANS = {"forward": forward_jacobian, "unit": unit_jacobian, "fd": fd_jacobian}
 
 
-def _check_method(method):
+def check_method(method):
     if method not in METHODS:
         raise ValueError(f"`method` must be one of {METHODS}; got {method!r}.")
 
@@ -199,7 +199,7 @@ def sensitivities(
     **Returns:** `(xf, dxf_da)` with shapes `(n,)` and `(n, num_params)`. Use
     `jt.evaluate` for the status and the constraint/objective derivatives.
     """
-    _check_method(method)
+    check_method(method)
     a = check_inputs(problem, control, a)
     check_simulator(simulator)
     xf, jac, _ = _sensitivities(problem, control, a, simulator, method)
@@ -278,7 +278,7 @@ def evaluate_restricted(problem, control, a, simulator, method="forward") -> Eva
     return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status, **path)
 
 
-_evaluate = eqx.filter_jit(evaluate_restricted)
+evaluate_jitted = eqx.filter_jit(evaluate_restricted)
 
 
 def evaluate(
@@ -295,7 +295,7 @@ def evaluate(
     empty for every problem here), `H = dE/da`, `G`, `G_a = dG/da`, by the chain rule
     through x(tf) and tf(a). See `jt.sensitivities` for the arguments.
     """
-    _check_method(method)
+    check_method(method)
     a = check_inputs(problem, control, a)
     check_simulator(simulator)
-    return _evaluate(problem, control, a, simulator, method)
+    return evaluate_jitted(problem, control, a, simulator, method)

@@ -62,6 +62,20 @@ def _chain(jx, x_a, jth, theta_a):
     return jnp.sum(jx[:, :, None] * x_a[None], axis=1) + jnp.sum(jth[:, :, None] * theta_a[None], axis=1)
 
 
+def rk4_step(field, tau, dt, y):
+    """One classical RK4 step of y' = field(tau, y) (pytrees) from tau to tau + dt."""
+
+    def axpy(alpha, x, y):
+        return jax.tree.map(lambda xi, yi: yi + alpha * xi, x, y)
+
+    k1 = field(tau, y)
+    k2 = field(tau + 0.5 * dt, axpy(0.5 * dt, k1, y))
+    k3 = field(tau + 0.5 * dt, axpy(0.5 * dt, k2, y))
+    k4 = field(tau + dt, axpy(dt, k3, y))
+    incr = jax.tree.map(lambda a, b, c, d: a + 2.0 * b + 2.0 * c + d, k1, k2, k3, k4)
+    return axpy(dt / 6.0, incr, y)
+
+
 class RK4(AbstractSimulator):
     """Classical fixed-step Runge-Kutta 4 with `steps` equal steps per segment, in `lax.scan`.
 
@@ -80,7 +94,7 @@ class RK4(AbstractSimulator):
         dt = 1.0 / n
 
         def step(y, j):
-            y1 = self._step(field, j * dt, dt, y)
+            y1 = rk4_step(field, j * dt, dt, y)
             return y1, (y1 if dense else None)
 
         y1, ys = lax.scan(step, y0, jnp.arange(n, dtype=jnp.float64))
@@ -99,7 +113,7 @@ class RK4(AbstractSimulator):
         dt = 1.0 / self.steps
 
         def one_step(x, th, tau):
-            x1 = self._step(lambda s, y: field(th, s, y), tau, dt, x)
+            x1 = rk4_step(lambda s, y: field(th, s, y), tau, dt, x)
             return x1, x1
 
         step_jacobian = jax.jacfwd(one_step, argnums=(0, 1), has_aux=True)
@@ -111,18 +125,6 @@ class RK4(AbstractSimulator):
 
         (x1, x1_a), _ = lax.scan(body, (x0, x0_a), jnp.arange(self.steps, dtype=jnp.float64))
         return x1, x1_a, jnp.array(True)
-
-    @staticmethod
-    def _step(field, tau, dt, y):
-        def axpy(alpha, x, y):
-            return jax.tree.map(lambda xi, yi: yi + alpha * xi, x, y)
-
-        k1 = field(tau, y)
-        k2 = field(tau + 0.5 * dt, axpy(0.5 * dt, k1, y))
-        k3 = field(tau + 0.5 * dt, axpy(0.5 * dt, k2, y))
-        k4 = field(tau + dt, axpy(dt, k3, y))
-        incr = jax.tree.map(lambda a, b, c, d: a + 2.0 * b + 2.0 * c + d, k1, k2, k3, k4)
-        return axpy(dt / 6.0, incr, y)
 
 
 class Diffrax(AbstractSimulator):
@@ -196,9 +198,7 @@ def integrate_segments(simulator: AbstractSimulator, field, data, y0, *, jump=No
 def segment_data(control: AbstractControl, a):
     """Everything segment k depends on, one row per segment: `[shape coefficients..., t_k, h_k]`."""
     knots = control.knots(a)
-    return jnp.concatenate(
-        [control.segment_table(a), knots[:-1, None], (knots[1:] - knots[:-1])[:, None]], axis=1
-    )
+    return jnp.concatenate([control.segment_table(a), knots[:-1, None], (knots[1:] - knots[:-1])[:, None]], axis=1)
 
 
 def rescaled_field(problem: Problem, control: AbstractControl):
@@ -281,9 +281,7 @@ def check_simulator(simulator):
 def _simulate(problem, control, a, simulator):
     field = rescaled_field(problem, control)
     K = control.num_segments
-    xf, xs, ok = integrate_segments(
-        simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True
-    )
+    xf, xs, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True)
     knots = control.knots(a)
     grid = jnp.asarray(simulator.dense_grid())
     h = knots[1:] - knots[:-1]

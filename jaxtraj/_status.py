@@ -40,8 +40,10 @@ def status_name(status):
     if not isinstance(status, Status):
         raise ValueError(f"`status` must be a jaxtraj Status item (e.g. `sol.status`); got {status!r}.")
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(status)):
-        raise ValueError("`status` must be concrete: status_name cannot be used inside jit/vmap; compare with "
-                         "`status == jt.Status.SUCCESS` there.")
+        raise ValueError(
+            "`status` must be concrete: status_name cannot be used inside jit/vmap; compare with "
+            "`status == jt.Status.SUCCESS` there."
+        )
     masks = [np.asarray(status == getattr(Status, name)) for name in STATUS_NAMES]
     if masks[0].ndim == 0:
         for name, mask in zip(STATUS_NAMES, masks):

@@ -50,8 +50,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._kalman import kkt_outcome, lagrangian_gradient, least_squares_multipliers, sequential_update
-from ._kalman_search import _projected_gradient
+from ._kalman import sequential_update
+from ._kkt import kkt_outcome, lagrangian_gradient, least_squares_multipliers, projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._simulate import RK4, final_state
 from ._solution import History
@@ -109,7 +109,7 @@ def subproblem(grad, W, V, radius):
     top = jnp.linalg.norm(W) + 1.0
     lam, Q = jnp.linalg.eigh(V @ W @ V + top * (jnp.eye(n) - V))
     gt = Q.T @ (V @ grad)
-    norm_at = lambda s: jnp.linalg.norm(gt / (lam + s))  # noqa: E731
+    norm_at = lambda s: jnp.linalg.norm(gt / (lam + s))
     lo = jnp.maximum(0.0, -lam[0])
     lo = lo + 1e-13 * (jnp.abs(lam[0]) + jnp.abs(lam[-1]) + 1e-300)
     # (a curvature within round-off of zero counts as flat, not negative: no run to the boundary
@@ -158,7 +158,7 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor)
 
     def add_row(carry):
         d, active, rounds = carry
-        short, excess = violations(d, active)
+        _short, excess = violations(d, active)
         active = active.at[jnp.argmax(excess)].set(True)
         return solve(active), active, rounds + 1
 
@@ -197,7 +197,9 @@ def _merit(ev: Evaluation, lam, nu):
 
 def init(solver, problem, control, a0, simulator, max_steps):
     if problem.path is not None:
-        raise ValueError("KalmanSQP: `globalization='trust-region'` does not handle path constraints; use 'line-search'.")
+        raise ValueError(
+            "KalmanSQP: `globalization='trust-region'` does not handle path constraints; use 'line-search'."
+        )
     ev = evaluate_restricted(problem, control, a0, simulator, "forward")
     lam = _multipliers(ev)
     W = lagrangian_hessian(problem, control, a0, simulator, lam)
@@ -270,10 +272,10 @@ def step(solver, problem, control, simulator, state: TRState):
         jnp.where(try_soc, state.radius, 0.25 * d_norm),
     )
 
-    new = lambda c, o: jax.tree.map(lambda x, y: jnp.where(accept, x, y), c, o)  # noqa: E731
+    new = lambda c, o: jax.tree.map(lambda x, y: jnp.where(accept, x, y), c, o)
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, lam))
     maxE = jnp.max(jnp.abs(new_ev.E))
-    pg = _projected_gradient(new_ev.G_a, new_ev.H)
+    pg = projected_gradient(new_ev.G_a, new_ev.H)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny))  # NaN radius too
     converged, stalled = kkt_outcome(

@@ -20,16 +20,15 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from ._kalman import path_rows
+from ._kkt import path_rows
 from ._problem import Problem
-from ._sensitivity import _check_method, _evaluate
+from ._sensitivity import check_method, evaluate_jitted
 from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
 from ._status import Status
 from .controls import AbstractControl
 
 #: Minimum gap between consecutive knots (node/switch times) imposed on the search.
 MIN_KNOT_GAP = 1e-6
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,7 +70,7 @@ class _CachedEvaluation:
     so that SLSQP's separate fun / jac / constraint calls at one point cost one integration."""
 
     def __init__(self, problem, control, simulator, method):
-        self._fn = lambda a: _evaluate(problem, control, a, simulator, method)
+        self._fn = lambda a: evaluate_jitted(problem, control, a, simulator, method)
         self._key = None
         self._value = None
         self.count = 0
@@ -103,7 +102,7 @@ class _CachedEvaluation:
 def _prepare(problem, control, a0, simulator, method):
     """Checked inputs and the cached evaluation shared by both baselines (default RK4())."""
     simulator = RK4() if simulator is None else simulator
-    _check_method(method)
+    check_method(method)
     a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     return a0, _CachedEvaluation(problem, control, simulator, method)

@@ -84,7 +84,7 @@ class AbstractControl(eqx.Module):
         tau = jnp.where(h > 0, (t - knots[k]) / jnp.where(h > 0, h, 1.0), 0.0)
         flat_k, flat_tau = k.reshape(-1), tau.reshape(-1)
         u = jax.vmap(lambda kk, tt: self.segment_control(a, kk, tt))(flat_k, flat_tau)
-        return u.reshape(t.shape + (self.num_controls,))
+        return u.reshape((*t.shape, self.num_controls))
 
     def validate(self, a) -> np.ndarray:
         """Check a concrete parameter vector outside jit; return it as float64 numpy.
@@ -97,14 +97,11 @@ class AbstractControl(eqx.Module):
             raise ValueError(f"`a` must be a numeric array for {self!r}; got dtype {arr.dtype}.")
         arr = arr.astype(np.float64)
         if arr.shape != (self.num_params,):
-            raise ValueError(
-                f"`a` must have shape ({self.num_params},) for {self!r}; got shape {arr.shape}."
-            )
+            raise ValueError(f"`a` must have shape ({self.num_params},) for {self!r}; got shape {arr.shape}.")
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
             raise ValueError(
-                f"`a` must be finite; got non-finite entries at indices {bad.tolist()} "
-                f"(values {arr[bad].tolist()})."
+                f"`a` must be finite; got non-finite entries at indices {bad.tolist()} (values {arr[bad].tolist()})."
             )
         # concrete values even when called while tracing (e.g. a constant `a` closed over
         # by a jitted function)
@@ -479,16 +476,14 @@ class SaturatedSpline(AbstractControl):
         if bad.size:
             i = int(bad[0])
             what = "segment durations h_k" if self.free_durations else "the final time tf"
-            raise ValueError(
-                f"`a`: {what} (a[{i}]) must be >= 0; got a[{i}] = {h[i]:g} (all: {h.tolist()})."
-            )
+            raise ValueError(f"`a`: {what} (a[{i}]) must be >= 0; got a[{i}] = {h[i]:g} (all: {h.tolist()}).")
 
 
 __all__ = [
     "AbstractControl",
+    "PiecewiseConstant",
     "PiecewiseLinear",
     "PiecewiseParabolic",
-    "PiecewiseConstant",
     "SaturatedSpline",
     "spline_kernel",
 ]

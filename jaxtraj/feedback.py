@@ -41,7 +41,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jax import lax
 
-from ._simulate import RK4, check_inputs, segment_data, simulation_status
+from ._simulate import RK4, check_inputs, rk4_step, segment_data, simulation_status
 from ._status import Status
 
 __all__ = [
@@ -560,9 +560,7 @@ class ThrustErrors(AbstractExecutionErrors):
     thrust_key: str | None
     angle_index: int
 
-    def __init__(
-        self, sigma_magnitude=0.01, sigma_pointing_deg=1.0, *, thrust_key="thrust", angle_index=0
-    ):
+    def __init__(self, sigma_magnitude=0.01, sigma_pointing_deg=1.0, *, thrust_key="thrust", angle_index=0):
         self.sigma_magnitude = _sigma("sigma_magnitude", sigma_magnitude)
         self.sigma_pointing = jnp.deg2rad(_sigma("sigma_pointing_deg", sigma_pointing_deg))
         self.thrust_key = thrust_key
@@ -573,13 +571,8 @@ class ThrustErrors(AbstractExecutionErrors):
 
     def check(self, problem):
         if not (isinstance(self.angle_index, int) and 0 <= self.angle_index < problem.num_controls):
-            raise ValueError(
-                f"`angle_index` must be an int in [0, {problem.num_controls}); "
-                f"got {self.angle_index!r}."
-            )
-        if self.thrust_key is not None and not (
-            isinstance(problem.args, dict) and self.thrust_key in problem.args
-        ):
+            raise ValueError(f"`angle_index` must be an int in [0, {problem.num_controls}); got {self.angle_index!r}.")
+        if self.thrust_key is not None and not (isinstance(problem.args, dict) and self.thrust_key in problem.args):
             raise ValueError(
                 f"ThrustErrors: `problem.args` must be a dict with the thrust magnitude under "
                 f"{self.thrust_key!r} (problem {problem.name!r}); pass thrust_key=None for "
@@ -645,12 +638,8 @@ class ExecutionErrors(AbstractExecutionErrors):
         u = jax.ShapeDtypeStruct((m,), jnp.float64)
         xi = jax.ShapeDtypeStruct((self.num,), jnp.float64)
         out = jax.eval_shape(lambda t, u, xi: self.fn(t, u, xi, problem.args), t, u, xi)
-        if not (
-            isinstance(out, tuple) and len(out) == 2 and getattr(out[0], "shape", None) == (m,)
-        ):
-            raise ValueError(
-                f"`fn(t, u, xi, args)` must return (u_actual of shape ({m},), args_actual)."
-            )
+        if not (isinstance(out, tuple) and len(out) == 2 and getattr(out[0], "shape", None) == (m,)):
+            raise ValueError(f"`fn(t, u, xi, args)` must return (u_actual of shape ({m},), args_actual).")
 
     def __call__(self, t, u, xi, args):
         return self.fn(t, u, xi, args)
@@ -715,7 +704,7 @@ def _sample_step(problem, control, execution, dtau, theta, tau, x, du, xi, w):
         u, args = execution(t, u, xi, problem.args)
         return h * (problem.dynamics(t, y, u, args) + w)
 
-    return RK4._step(field, tau, dtau, x)
+    return rk4_step(field, tau, dtau, x)
 
 
 class _Noise(eqx.Module):
@@ -884,8 +873,7 @@ def _check_execution(execution, problem):
         return _Exact()
     if not isinstance(execution, AbstractExecutionErrors):
         raise ValueError(
-            "`execution` must be None, ThrustErrors, ControlErrors or ExecutionErrors; "
-            f"got {type(execution).__name__}."
+            f"`execution` must be None, ThrustErrors, ControlErrors or ExecutionErrors; got {type(execution).__name__}."
         )
     execution.check(problem)
     return execution
@@ -936,9 +924,7 @@ def _linearize(problem, control, a, execution, p, steps):
         grid.theta, grid.tau, x[:-1], jnp.zeros((N, m)), jnp.zeros((N, p)), jnp.zeros((N, n))
     )
     status = simulation_status(jnp.array(True), x, A, B)
-    return Linearization(
-        t=grid.t, x=x, u=u, A=A, B=B, Ad=Ad, Bd=Bd, Gd=Gd, Ed=Ed, dt=grid.dt, status=status
-    )
+    return Linearization(t=grid.t, x=x, u=u, A=A, B=B, Ad=Ad, Bd=Bd, Gd=Gd, Ed=Ed, dt=grid.dt, status=status)
 
 
 def bryson_weights(lin: Linearization, state_scale, control_scale, terminal_scale):
@@ -989,9 +975,7 @@ def tracking_lqr(lin: Linearization, Q, R, Qf, *, discrete=True, multiplicative=
         if kwargs:
             raise ValueError(f"unexpected keyword(s) {sorted(kwargs)} for discrete=True.")
         dt = lin.dt[:, None, None]
-        return discrete_lqr(
-            lin.Ad, lin.Bd, Q[None] * dt, R[None] * dt, Qf, multiplicative=multiplicative
-        )
+        return discrete_lqr(lin.Ad, lin.Bd, Q[None] * dt, R[None] * dt, Qf, multiplicative=multiplicative)
     if multiplicative is not None:
         raise ValueError("`multiplicative` needs discrete=True (seed eq. 2.19).")
     kwargs = {"step_ts": lin.t, "max_steps": 8 * lin.t.shape[0] + 4096, **kwargs}
@@ -1233,17 +1217,11 @@ def monte_carlo(
     _check_simulator_rk4(simulator)
     if not (isinstance(n, int) and not isinstance(n, bool) and n >= 2):
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
-    shorthand = [
-        not (isinstance(s, int | float) and s == 0) for s in (sigma_thrust, sigma_pointing_deg)
-    ]
+    shorthand = [not (isinstance(s, int | float) and s == 0) for s in (sigma_thrust, sigma_pointing_deg)]
     if any(shorthand):
         if execution is not None:
-            raise ValueError(
-                "pass either `execution` or `sigma_thrust` / `sigma_pointing_deg`, not both."
-            )
-        execution = ThrustErrors(
-            sigma_thrust, sigma_pointing_deg, thrust_key="thrust" if shorthand[0] else None
-        )
+            raise ValueError("pass either `execution` or `sigma_thrust` / `sigma_pointing_deg`, not both.")
+        execution = ThrustErrors(sigma_thrust, sigma_pointing_deg, thrust_key="thrust" if shorthand[0] else None)
     N, nx, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     gains = _check_gains(gains, N, m, nx)
     noise = _noise_model(problem, execution, process_noise, initial_covariance, correlation_time)
@@ -1287,9 +1265,7 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
     tf = grid.t[-1]
 
     def run(i):
-        x0, xf, xs, _, du2 = _rollout(
-            problem, control, noise, grid, x_ref[:-1], K, jax.random.fold_in(key, i), save
-        )
+        x0, xf, xs, _, du2 = _rollout(problem, control, noise, grid, x_ref[:-1], K, jax.random.fold_in(key, i), save)
         return xf, (jnp.concatenate([x0[None], xs]) if save else None), du2
 
     xfs, xs, du2 = jax.vmap(run)(jnp.arange(n))

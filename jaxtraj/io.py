@@ -106,7 +106,9 @@ def load(folder):
         steps=jnp.asarray(summary["steps"]),
         status=status,
         history=history,
-        max_path_constraint=None if "max_path_constraint" not in summary else jnp.asarray(summary["max_path_constraint"]),
+        max_path_constraint=None
+        if "max_path_constraint" not in summary
+        else jnp.asarray(summary["max_path_constraint"]),
         max_path_time=None if "max_path_time" not in summary else jnp.asarray(summary["max_path_time"]),
     )
     traj = Trajectory(

@@ -5,7 +5,7 @@ from typing import NamedTuple
 import numpy as np
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,8 +79,14 @@ def orbit_plane(ax, traj, r_target, *, layout, label="transfer", color="C0"):
     r0 = float(np.asarray(traj.x)[0, lay.radius])
     circle = np.linspace(0, 2 * np.pi, 361)
     ax.plot(r0 * np.cos(circle), r0 * np.sin(circle), color="0.55", lw=1, ls="--", label=f"initial orbit (r = {r0:g})")
-    ax.plot(r_target * np.cos(circle), r_target * np.sin(circle), color="C3", lw=1, ls="--",
-            label=f"target orbit (r = {r_target:g})")
+    ax.plot(
+        r_target * np.cos(circle),
+        r_target * np.sin(circle),
+        color="C3",
+        lw=1,
+        ls="--",
+        label=f"target orbit (r = {r_target:g})",
+    )
     ax.plot(xs, ys, color=color, lw=2, label=label)
     ax.plot([xs[-1]], [ys[-1]], "o", color=color)
     ax.plot([0], [0], marker="*", color="orange", ms=12, ls="none", label="Sun")
@@ -136,7 +142,7 @@ def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=N
     """A 2x2 overview: control history, states, convergence history, and (for orbit
     transfers, when `r_target` is given) the trajectory in the orbital plane, its state
     layout taken from `problem` (`orbit_layout`)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     plot_controls(axes[0, 0], problem, traj)
     plot_states(axes[0, 1], problem, traj)
@@ -160,7 +166,7 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
     `orbit_layout`), `orbit.png`. Returns the file names written."""
     import os
 
-    plt = _plt()
+    plt = pyplot()
     names = ["solution.png"]
     solution_figure(problem, control, sol, traj, os.path.join(folder, "solution.png"), title=title, r_target=r_target)
     fig, axes = plt.subplots(2, 1, figsize=(9, 8), sharex=True)
@@ -191,13 +197,14 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
 def batch_figure(path, problem, objectives, success, trajectories, *, title=None):
     """Multi-start overview: histogram of the final objectives of the successful starts, and
     the control histories of (up to 50 of) them overlaid. `trajectories`: `jt.Trajectory`s."""
-    plt = _plt()
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     obj = np.asarray(objectives)[np.asarray(success)]
     if obj.size:
         ax1.hist(obj, bins=min(40, max(5, obj.size // 3)), color="C0", alpha=0.8)
-    ax1.set(xlabel="final objective", ylabel="starts",
-            title=f"{obj.size} / {np.asarray(success).size} starts successful")
+    ax1.set(
+        xlabel="final objective", ylabel="starts", title=f"{obj.size} / {np.asarray(success).size} starts successful"
+    )
     ax1.grid(alpha=0.3)
     best = np.min(obj) if obj.size else None
     names = problem.control_names or tuple(f"u{j}" for j in range(problem.num_controls))
@@ -205,8 +212,12 @@ def batch_figure(path, problem, objectives, success, trajectories, *, title=None
         u = np.asarray(traj.u)
         for j in range(u.shape[1]):
             ax2.plot(traj.t, u[:, j], color=f"C{j}", lw=0.8, alpha=0.35, label=names[j] if i == 0 else None)
-    ax2.set(xlabel="t", ylabel="u", title=f"controls of {len(trajectories)} successful starts"
-            + (f" (best objective {best:.6g})" if best is not None else ""))
+    ax2.set(
+        xlabel="t",
+        ylabel="u",
+        title=f"controls of {len(trajectories)} successful starts"
+        + (f" (best objective {best:.6g})" if best is not None else ""),
+    )
     ax2.grid(alpha=0.3)
     if trajectories:
         ax2.legend(fontsize=8)

@@ -19,7 +19,6 @@ from .baselines import solve_slsqp
 from .problems import earth_mars as EM
 
 
-
 def reproduce(cases=range(1, 8), verbose=True):
     rows = []
     for n in cases:
@@ -56,8 +55,11 @@ def reproduce(cases=range(1, 8), verbose=True):
         )
         rows.append(row)
         if verbose:
-            print(f"case {n}: tf = {row['tf']:.6f} ({row['status']}, {row['integrations']} integrations, "
-                  f"{warm:.2f} s warm); SLSQP optimum {row['ref_tf']:.6f}", flush=True)
+            print(
+                f"case {n}: tf = {row['tf']:.6f} ({row['status']}, {row['integrations']} integrations, "
+                f"{warm:.2f} s warm); SLSQP optimum {row['ref_tf']:.6f}",
+                flush=True,
+            )
     return rows
 
 
@@ -77,16 +79,15 @@ def markdown(rows):
 
 
 def figure(rows, path):
-    from .plot import _plt
+    from .plot import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 6))
     for r in rows:
         traj = simulate(r["prob"], r["ctrl"], r["params"])
         u = np.asarray(traj.u[:, 0])
         u = np.where(u < -0.5, u + 2 * np.pi, u)  # same branch for every case (angles mod 2 pi)
-        ax.plot(np.asarray(traj.t), u, lw=1.8,
-                label=f"case {r['case']}: {r['control']}, tf = {r['tf']:.5f}")
+        ax.plot(np.asarray(traj.t), u, lw=1.8, label=f"case {r['case']}: {r['control']}, tf = {r['tf']:.5f}")
     ax.set_xlabel("time [normalized units; 1 unit = 58.1 days]")
     ax.set_ylabel("thrust angle from the local horizontal [rad, mod 2 pi]")
     ax.set_title("Earth-Mars minimum-time transfer: optimal restricted controls of the seven thesis cases")
@@ -108,5 +109,3 @@ def main(outdir="results"):
     path = os.path.join(outdir, "earth-mars-thesis.png")
     figure(rows, path)
     print(f"\ntable written to {os.path.join(outdir, 'earth-mars-thesis.md')}, figure to {path}")
-
-

@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import perturbed_starts
 
 import jaxtraj as jt
@@ -36,8 +35,11 @@ def test_end_attitudes_are_half_a_degree_outside_the_cone(representation):
     prob = attitude.problem(representation)
     assert abs(float(attitude.boresight_margin(prob, prob.x0)) - 0.5) < 1e-6
     qf = prob.args["qf"]
-    xf = jnp.concatenate([qf, jnp.zeros(4)]) if representation == "quaternion" else jnp.concatenate(
-        [rotations.quaternion_to_euler_zyx(qf), jnp.zeros(4)])
+    xf = (
+        jnp.concatenate([qf, jnp.zeros(4)])
+        if representation == "quaternion"
+        else jnp.concatenate([rotations.quaternion_to_euler_zyx(qf), jnp.zeros(4)])
+    )
     assert abs(float(attitude.boresight_margin(prob, xf)) - 0.5) < 1e-6
     # the state at qf meets the terminal attitude constraints (the rate and time ones aside)
     np.testing.assert_allclose(prob.terminal(prob.args["tf"], xf, prob.args)[:3], 0.0, atol=1e-12)
@@ -97,8 +99,15 @@ def test_euler_gimbal_lock_is_reported():
     assert prob.path_names == ("cone", "gimbal")
     x = jnp.concatenate([jnp.radians(jnp.array([10.0, 85.0, 5.0])), jnp.zeros(4)])
     assert float(prob.path(0.0, x, jnp.zeros(3), prob.args)[1]) > 0  # |theta| = 85 > 80 deg
-    at_lock = jt.Problem(prob.dynamics, jnp.array([0.0, np.pi / 2, 0.0, 0.0, 0.0, 0.01, 0.0]), prob.terminal,
-                         prob.constraint_names, num_controls=3, objective=prob.objective, args=prob.args)
+    at_lock = jt.Problem(
+        prob.dynamics,
+        jnp.array([0.0, np.pi / 2, 0.0, 0.0, 0.0, 0.01, 0.0]),
+        prob.terminal,
+        prob.constraint_names,
+        num_controls=3,
+        objective=prob.objective,
+        args=prob.args,
+    )
     _, ctrl, a0 = attitude.case("euler", 2)
     assert jt.simulate(at_lock, ctrl, a0, simulator=jt.RK4(2)).status == jt.Status.NONFINITE
 
@@ -115,7 +124,7 @@ def test_bad_arguments():
     prob, ctrl, a0 = attitude.case("quaternion", 2)
     with pytest.raises(ValueError, match="grid_factor"):
         attitude.cone_margin(prob, ctrl, a0, grid_factor=0)
-    with pytest.raises(ValueError, match="attitude.problem"):
+    with pytest.raises(ValueError, match=r"attitude\.problem"):
         attitude.boresight_margin(jt.problems.earth_mars.problem(), jnp.zeros(3))
 
 
@@ -169,8 +178,9 @@ def test_kalman_sqp_reaches_the_augmented_lagrangian_optimum(representation):
     penalty of 2e16 drowned the merit in round-off)."""
     prob, ctrl, a0 = attitude.case(representation, 8)
     starts = jnp.concatenate([perturbed_starts(a0), perturbed_starts(a0, absolute=True)[1:]])
-    sols = jt.solve_batch(prob, ctrl, starts, jt.KalmanSQP(), simulator=SIM, max_steps=600, progress=False,
-                          history=False)
+    sols = jt.solve_batch(
+        prob, ctrl, starts, jt.KalmanSQP(), simulator=SIM, max_steps=600, progress=False, history=False
+    )
     assert jt.status_name(sols.status).tolist() == ["SUCCESS"] * starts.shape[0]
     for sol in sols:
         assert float(sol.max_constraint_error) <= 1e-9

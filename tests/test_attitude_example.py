@@ -7,6 +7,7 @@ Euler forms reach the same energy."""
 
 import json
 import os
+
 from helpers import load_example
 
 
@@ -28,11 +29,7 @@ def test_attitude_example_quick(tmp_path, capsys):
         saved = json.load(f)
     assert saved["arguments"]["segments"] == 4 and saved["arguments"]["rk4_steps"] == 10
     rows = {(r["slew"], r["representation"]): r for r in record["rows"]}
-    assert set(rows) == {
-        (s, r)
-        for s in ("unconstrained", "constrained")
-        for r in ("quaternion", "euler")
-    }
+    assert set(rows) == {(s, r) for s in ("unconstrained", "constrained") for r in ("quaternion", "euler")}
     for rep in ("quaternion", "euler"):
         unc, con = rows["unconstrained", rep], rows["constrained", rep]
         assert unc["status"] == con["status"] == "SUCCESS"
@@ -54,14 +51,8 @@ def test_attitude_example_quick(tmp_path, capsys):
         a = agree[slew, "AugmentedLagrangian"]
         assert a["both_success"] and a["agree"] and a["relative_difference"] <= 1e-6
     # the table: one row per solve, and the agreement line
-    table_rows = [
-        line
-        for line in printed.splitlines()
-        if line.startswith(("| unconstrained |", "| constrained |"))
-    ]
+    table_rows = [line for line in printed.splitlines() if line.startswith(("| unconstrained |", "| constrained |"))]
     assert len(table_rows) == 4
     assert "Quaternion vs Euler" in printed
     with open(os.path.join(out, "results.md")) as f:
-        assert (
-            "| constrained | euler | AugmentedLagrangian (rest) | SUCCESS |" in f.read()
-        )
+        assert "| constrained | euler | AugmentedLagrangian (rest) | SUCCESS |" in f.read()

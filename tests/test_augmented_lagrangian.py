@@ -116,8 +116,15 @@ def test_parameter_box_projection_and_reduced_gradient():
     np.testing.assert_allclose(g_h, [2.5, 0.0, 0.5], atol=1e-15)
     # spline coefficients within both the spline's and the problem's bounds, durations >= min
     spline = C.SaturatedSpline(2, 1, -1.0, 1.0)
-    bounded = jt.Problem(prob.dynamics, prob.x0, prob.terminal, prob.constraint_names, args=prob.args,
-                         control_lower=-0.5, control_upper=2.0)
+    bounded = jt.Problem(
+        prob.dynamics,
+        prob.x0,
+        prob.terminal,
+        prob.constraint_names,
+        args=prob.args,
+        control_lower=-0.5,
+        control_upper=2.0,
+    )
     box = parameter_box(bounded, spline, 1e-4)
     p = np.asarray(box.project(jnp.array([-1.0, 2.0, -3.0, 0.2, 3.0])))
     np.testing.assert_array_equal(p, [1e-4, 2.0, -0.5, 0.2, 1.0])
@@ -133,8 +140,16 @@ def test_control_bounds_against_slsqp():
     would need bang-bang): the bound is active; the result equals SLSQP with the same bounds
     on the same restricted problem."""
     base = jt.problems.analytic.min_energy_double_integrator(1.0)
-    prob = jt.Problem(base.dynamics, base.x0, base.terminal, base.constraint_names, objective=base.objective,
-                      args=base.args, control_lower=-5.0, control_upper=5.0)
+    prob = jt.Problem(
+        base.dynamics,
+        base.x0,
+        base.terminal,
+        base.constraint_names,
+        objective=base.objective,
+        args=base.args,
+        control_lower=-5.0,
+        control_upper=5.0,
+    )
     ctrl, sim = C.PiecewiseLinear(4), jt.RK4(4)
     a0 = ctrl.initial_guess(1.2, 0.0, 0.0)
     sol = jt.solve(prob, ctrl, a0, AL, simulator=sim)
@@ -142,7 +157,10 @@ def test_control_bounds_against_slsqp():
     assert float(jnp.max(jnp.abs(sol.params[:-1]))) <= 5.0
     ev = jax.jit(lambda a: evaluate_restricted(prob, ctrl, a, sim))
     ref = scipy.optimize.minimize(
-        lambda a: float(ev(a).G), np.asarray(a0), jac=lambda a: np.asarray(ev(a).G_a), method="SLSQP",
+        lambda a: float(ev(a).G),
+        np.asarray(a0),
+        jac=lambda a: np.asarray(ev(a).G_a),
+        method="SLSQP",
         bounds=[(-5.0, 5.0)] * 5 + [(0.1, 2.0)],
         constraints={"type": "eq", "fun": lambda a: np.asarray(ev(a).E), "jac": lambda a: np.asarray(ev(a).H)},
         options={"ftol": 1e-14, "maxiter": 500},
@@ -209,5 +227,4 @@ def test_path_problems_need_forward_sensitivities():
     prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
     ctrl = C.PiecewiseLinear(4)
     with pytest.raises(ValueError, match="method='forward'"):
-        jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), AugmentedLagrangian(method="unit"),
-                 simulator=jt.RK4(4))
+        jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), AugmentedLagrangian(method="unit"), simulator=jt.RK4(4))

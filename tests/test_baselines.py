@@ -69,6 +69,10 @@ def test_baselines_enforce_path_constraints(solve):
     assert res.max_path_constraint <= 1e-8
     assert res.max_constraint_error <= 1e-8
     assert abs(res.objective - jt.problems.analytic.speed_limited_energy(1.2)) < 1e-6
-    free = solve_slsqp(jt.problems.analytic.min_energy_double_integrator(), ctrl, ctrl.initial_guess(1.2, 0.0, 0.0),
-                       simulator=jt.RK4(4))
+    free = solve_slsqp(
+        jt.problems.analytic.min_energy_double_integrator(),
+        ctrl,
+        ctrl.initial_guess(1.2, 0.0, 0.0),
+        simulator=jt.RK4(4),
+    )
     assert free.max_path_constraint == -np.inf and abs(free.objective - 6.0) < 1e-6

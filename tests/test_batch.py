@@ -143,7 +143,10 @@ def test_sharded_over_4_host_devices_equals_unsharded(batch, tmp_path):
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "PYTHONPATH": REPO}
     proc = subprocess.run(
         [sys.executable, "-c", _SHARDED, str(tmp_path / "starts.npy"), str(tmp_path / "out.npz")],
-        env=env, capture_output=True, text=True, timeout=300,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -176,9 +179,11 @@ def test_kill_and_resume(batch, tmp_path, monkeypatch, capsys):
 
     def dies_writing_second_chunk(path, fn):
         if path.endswith("chunk_00001.npz"):
+
             def partial(f):
                 f.write(b"PK\x03\x04 half a file")
                 raise _Killed
+
             return write(path, partial)
         return write(path, fn)
 
@@ -209,7 +214,11 @@ def test_resume_with_other_inputs_is_refused(tmp_path):
     out = str(tmp_path / "run")
     os.makedirs(out)
     manifest = {
-        "format": _batch._FORMAT, "num_starts": 7, "chunk_size": CHUNK, "num_chunks": 2, "history": True,
+        "format": _batch._FORMAT,
+        "num_starts": 7,
+        "chunk_size": CHUNK,
+        "num_chunks": 2,
+        "history": True,
         "a0s_sha256": _batch._fingerprint(STARTS),
         "inputs_sha256": _batch._fingerprint((PROB, CTRL, SOLVER, SIM, MAX_STEPS)),
     }
@@ -283,8 +292,15 @@ C = jt.controls
 )
 def test_random_starts_are_valid_and_bounded(ctrl):
     prob = jt.problems.earth_mars.problem()
-    bounded = jt.Problem(prob.dynamics, prob.x0, prob.terminal, prob.constraint_names, args=prob.args,
-                         control_lower=[0.0], control_upper=[4.0])
+    bounded = jt.Problem(
+        prob.dynamics,
+        prob.x0,
+        prob.terminal,
+        prob.constraint_names,
+        args=prob.args,
+        control_lower=[0.0],
+        control_upper=[4.0],
+    )
     around = ctrl.initial_guess(3.4, 0.0, 1.5 * np.pi)
     starts = np.asarray(random_starts(bounded, ctrl, jax.random.key(3), 40, around, spread=0.5))
     assert starts.shape == (40, ctrl.num_params) and starts.dtype == np.float64
@@ -361,9 +377,20 @@ def test_two_hosts_with_jax_distributed(batch, tmp_path):
     env = {**os.environ, "PYTHONPATH": REPO}
     procs = [
         subprocess.Popen(
-            [sys.executable, "-c", _HOST, port, str(i), str(tmp_path / "starts.npy"), str(tmp_path / "run"),
-             str(tmp_path / f"out{i}.npz")],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            [
+                sys.executable,
+                "-c",
+                _HOST,
+                port,
+                str(i),
+                str(tmp_path / "starts.npy"),
+                str(tmp_path / "run"),
+                str(tmp_path / f"out{i}.npz"),
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         for i in range(2)
     ]
@@ -384,8 +411,9 @@ def test_import_leaves_the_cpu_device_count_open():
     still split the CPU into one device per core for solve_batch."""
     code = "import jax, jaxtraj; jax.config.update('jax_num_cpu_devices', 3); print(len(jax.devices('cpu')))"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    proc = subprocess.run([sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True,
-                          text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == "3"
 
@@ -393,13 +421,20 @@ def test_import_leaves_the_cpu_device_count_open():
 def test_import_sets_the_xla_cpu_option_xla_accepts():
     """`import jaxtraj` raises XLA:CPU's small-while-loop threshold, and XLA accepts the option (it
     aborts on an unknown flag); JAXTRAJ_NO_XLA_TUNING=1 leaves XLA_FLAGS alone."""
-    code = ("import os, jax.numpy as jnp, jaxtraj; print(float(jnp.sin(jnp.arange(3.0)).sum())); "
-            "print(os.environ.get('XLA_FLAGS', ''))")
+    code = (
+        "import os, jax.numpy as jnp, jaxtraj; print(float(jnp.sin(jnp.arange(3.0)).sum())); "
+        "print(os.environ.get('XLA_FLAGS', ''))"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAJ_NO_XLA_TUNING")}
     for off in (False, True):
         extra = {"JAXTRAJ_NO_XLA_TUNING": "1"} if off else {}
-        proc = subprocess.run([sys.executable, "-c", code], env={**env, **extra, "PYTHONPATH": REPO},
-                              capture_output=True, text=True, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-c", code],
+            env={**env, **extra, "PYTHONPATH": REPO},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert proc.returncode == 0, proc.stderr[-2000:]
         value, flags = proc.stdout.split("\n")[:2]
         assert float(value) == pytest.approx(np.sin(1.0) + np.sin(2.0), rel=1e-15)

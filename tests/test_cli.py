@@ -16,8 +16,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def run(*args, tmp_path):
     env = {**os.environ, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": ROOT}
-    return subprocess.run([sys.executable, "-m", "jaxtraj", *args], capture_output=True, text=True,
-                          env=env, cwd=tmp_path, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "jaxtraj", *args], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600
+    )
 
 
 def test_solve_writes_results_that_load_back(tmp_path):
@@ -62,7 +63,11 @@ def test_problems_lists_the_problems(tmp_path):
     ],
 )
 def test_bad_input_gives_one_line_error(args, message, tmp_path):
-    r = run(*args, "--out", str(tmp_path / "o"), tmp_path=tmp_path) if args[0] == "solve" else run(*args, tmp_path=tmp_path)
+    r = (
+        run(*args, "--out", str(tmp_path / "o"), tmp_path=tmp_path)
+        if args[0] == "solve"
+        else run(*args, tmp_path=tmp_path)
+    )
     assert r.returncode == 2
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
@@ -90,14 +95,47 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
 
 def test_multistart_batch_reports_progress_and_best(tmp_path):
     out = tmp_path / "batch"
-    r = run("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--seed", "2", "--steps", "4",
-            "--no-plot", "--out", str(out), tmp_path=tmp_path)
+    r = run(
+        "solve",
+        "min-energy",
+        "--control",
+        "linear:2",
+        "--starts",
+        "3",
+        "--seed",
+        "2",
+        "--steps",
+        "4",
+        "--no-plot",
+        "--out",
+        str(out),
+        tmp_path=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     assert "solve_batch: 3/3 starts" in r.stderr and "3 / 3 starts successful" in r.stdout
     assert sorted(p.name for p in (out / "batch").iterdir()) == [
-        "chunk_00000.npz", "chunk_00001.npz", "chunk_00002.npz", "manifest.json"]
-    again = run("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--seed", "2", "--steps", "4",
-                "--no-plot", "--out", str(out), "--resume", tmp_path=tmp_path)
+        "chunk_00000.npz",
+        "chunk_00001.npz",
+        "chunk_00002.npz",
+        "manifest.json",
+    ]
+    again = run(
+        "solve",
+        "min-energy",
+        "--control",
+        "linear:2",
+        "--starts",
+        "3",
+        "--seed",
+        "2",
+        "--steps",
+        "4",
+        "--no-plot",
+        "--out",
+        str(out),
+        "--resume",
+        tmp_path=tmp_path,
+    )
     assert again.returncode == 0 and "3/3 chunk(s) already done" in again.stderr, again.stderr
     assert abs(json.loads((out / "summary.json").read_text())["objective"] - 6.0) < 1e-6
     summary = json.loads((out / "summary.json").read_text())
@@ -108,8 +146,20 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
 @pytest.mark.parametrize("solver", ["sqp", "sqp-tr"])
 def test_solve_with_kalman_sqp(tmp_path, solver):
     out = tmp_path / "sqp"
-    r = run("solve", "min-energy", "--control", "linear:3", "--solver", solver, "--steps", "4", "--no-plot",
-            "--out", str(out), tmp_path=tmp_path)
+    r = run(
+        "solve",
+        "min-energy",
+        "--control",
+        "linear:3",
+        "--solver",
+        solver,
+        "--steps",
+        "4",
+        "--no-plot",
+        "--out",
+        str(out),
+        tmp_path=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and "KalmanSQP" in summary["inputs"]["solver"]
@@ -118,8 +168,22 @@ def test_solve_with_kalman_sqp(tmp_path, solver):
 
 def test_monte_carlo_after_a_solve(tmp_path):
     out = tmp_path / "mc"
-    r = run("solve", "earth-mars", "--case", "4", "--solver", "sqp", "--steps", "30", "--no-plot",
-            "--monte-carlo", "300", "--out", str(out), tmp_path=tmp_path)
+    r = run(
+        "solve",
+        "earth-mars",
+        "--case",
+        "4",
+        "--solver",
+        "sqp",
+        "--steps",
+        "30",
+        "--no-plot",
+        "--monte-carlo",
+        "300",
+        "--out",
+        str(out),
+        tmp_path=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     mc = json.loads((out / "summary.json").read_text())["monte_carlo"]
     assert mc["runs"] == 300 and mc["open loop"]["failed"] == 0 and mc["closed loop"]["failed"] == 0

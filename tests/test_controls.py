@@ -45,11 +45,11 @@ def test_thesis_layouts_match_the_tables():
     _, c1, a1 = jt.problems.earth_mars.thesis_case(1)
     assert c1.num_params == 12 and c1.time_indices == (2, 5, 8, 11)
     np.testing.assert_allclose(c1.knots(a1), [0.0, 0.85, 1.7, 2.55, 3.4])
-    _, c4, a4 = jt.problems.earth_mars.thesis_case(4)
+    _, c4, _a4 = jt.problems.earth_mars.thesis_case(4)
     assert c4.num_params == 7 and c4.time_indices == (6,)
     _, c3, a3 = jt.problems.earth_mars.thesis_case(3)
     assert c3.num_params == 8 and c3.time_indices == (3, 7)
-    _, c7, a7 = jt.problems.earth_mars.thesis_case(7)
+    _, c7, _a7 = jt.problems.earth_mars.thesis_case(7)
     assert c7.num_params == 10 and c7.time_indices == (1, 3, 5, 7, 9)
     # the published test-3 start is the straight line u = 1.5 pi t / 3.4 (slope parameter 1.386)
     t = jnp.linspace(0, 3.4, 21)
@@ -66,7 +66,7 @@ def test_discontinuous_linear_jumps_at_nodes():
 def test_parabola_interpolates_its_end_values_and_slope():
     ctrl = C.PiecewiseParabolic(1)
     a = jnp.array([1.0, -2.0, 3.0, 2.0])  # u(0)=1, u'(0)=-2, u(2)=3
-    u = lambda t: ctrl(a, t)[0]  # noqa: E731
+    u = lambda t: ctrl(a, t)[0]
     assert float(u(0.0)) == pytest.approx(1.0)
     assert float(u(2.0)) == pytest.approx(3.0)
     assert float(jax.grad(u)(0.0)) == pytest.approx(-2.0)

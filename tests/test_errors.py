@@ -33,7 +33,9 @@ def test_node_times_out_of_order():
     ctrl = C.PiecewiseLinear(3, continuous=False, free_times=True)
     a = np.array(ctrl.initial_guess(3.4, 0.0, 4.7))
     a[5] = 0.5  # t_2 < t_1 = 1.133
-    with pytest.raises(ValueError, match=r"node times must be strictly increasing.*t_1 < t_2, got t_1 = 1.13333, t_2 = 0.5"):
+    with pytest.raises(
+        ValueError, match=r"node times must be strictly increasing.*t_1 < t_2, got t_1 = 1.13333, t_2 = 0.5"
+    ):
         jt.simulate(PROB, ctrl, a)
 
 

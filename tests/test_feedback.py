@@ -82,26 +82,20 @@ def test_scalar_continuous_matches_closed_form():
     assert g.S.dtype == jnp.float64 and g.K.shape == (101, 1, 1)
     assert _rel(g.S[:, 0, 0], s) < 1e-8
     assert _rel(g.K[:, 0, 0], b * s / r) < 1e-8
-    c, _ = scipy.integrate.quad(
-        lambda t: w * _scalar_riccati(t, a, b, q, r, qf, tf), 0.0, tf, epsabs=1e-14
-    )
+    c, _ = scipy.integrate.quad(lambda t: w * _scalar_riccati(t, a, b, q, r, qf, tf), 0.0, tf, epsabs=1e-14)
     assert abs(float(g.c[0]) - c) < 1e-9 * c and float(g.c[-1]) == 0.0
     assert abs(float(g.expected_cost(jnp.array([2.0]))) - (4 * s[0] + c)) < 1e-8
     # u = -K x, linear interpolation of K between samples
     mid = 0.5 * (g.ts[3] + g.ts[4])
     np.testing.assert_allclose(g.gain(g.ts[3]), g.K[3], rtol=1e-14)
     np.testing.assert_allclose(g.gain(mid), 0.5 * (g.K[3] + g.K[4]), rtol=1e-14)
-    np.testing.assert_allclose(
-        g.control(mid, jnp.array([2.0])), -2.0 * g.gain(mid)[:, 0], rtol=1e-14
-    )
+    np.testing.assert_allclose(g.control(mid, jnp.array([2.0])), -2.0 * g.gain(mid)[:, 0], rtol=1e-14)
 
 
 def test_jit_and_vmap_through_continuous():
     a, b, r, qf, tf = -0.3, 1.0, 1.0, 0.0, 1.0
     qs = jnp.array([0.5, 2.0, 8.0])
-    run = lambda q: continuous_lqr(
-        *_scalar(a, b), q * jnp.eye(1), r * jnp.eye(1), qf * jnp.eye(1), 0.0, tf
-    ).S[:, 0, 0]
+    run = lambda q: continuous_lqr(*_scalar(a, b), q * jnp.eye(1), r * jnp.eye(1), qf * jnp.eye(1), 0.0, tf).S[:, 0, 0]
     got = jax.jit(jax.vmap(run))(qs)
     ts = np.linspace(0.0, tf, 101)
     for q, s in zip(np.asarray(qs), got):
@@ -128,9 +122,7 @@ def test_time_varying_continuous_vs_solve_ivp():
         return -(An.T @ S + S @ An - S @ Bn @ np.linalg.solve(R, Bn.T @ S) + Q(t)).ravel()
 
     ts = np.asarray(g.ts)
-    ref = scipy.integrate.solve_ivp(
-        rhs, (tf, t0), Qf.ravel(), method="DOP853", t_eval=ts[::-1], rtol=1e-12, atol=1e-14
-    )
+    ref = scipy.integrate.solve_ivp(rhs, (tf, t0), Qf.ravel(), method="DOP853", t_eval=ts[::-1], rtol=1e-12, atol=1e-14)
     S_ref = ref.y.T[::-1].reshape(-1, 2, 2)
     assert _rel(g.S, S_ref) < 5e-9
     np.testing.assert_array_equal(g.S, np.swapaxes(g.S, 1, 2))
@@ -157,9 +149,7 @@ def test_continuous_is_the_limit_of_discrete_zoh():
     for N in (50, 100, 200):
         dt = T / N
         Ad, Bd = zoh_discretize(A, B, dt)
-        d = discrete_lqr(
-            jnp.broadcast_to(Ad, (N, 2, 2)), jnp.broadcast_to(Bd, (N, 2, 1)), Q * dt, R * dt, Qf
-        )
+        d = discrete_lqr(jnp.broadcast_to(Ad, (N, 2, 2)), jnp.broadcast_to(Bd, (N, 2, 1)), Q * dt, R * dt, Qf)
         every = 200 // N
         errs.append(max(_rel(d.K, g.K[:-1:every]), _rel(d.S, g.S[::every])))
     ratios = np.array(errs[:-1]) / np.array(errs[1:])
@@ -175,9 +165,7 @@ def test_continuous_is_the_limit_of_discrete_zoh():
 def test_discrete_converges_to_dare():
     A, B, Q, R = _rand_system(0, 4, 2)
     N = 400
-    d = discrete_lqr(
-        np.broadcast_to(A, (N, 4, 4)), np.broadcast_to(B, (N, 4, 2)), Q, R, np.zeros((4, 4))
-    )
+    d = discrete_lqr(np.broadcast_to(A, (N, 4, 4)), np.broadcast_to(B, (N, 4, 2)), Q, R, np.zeros((4, 4)))
     X = scipy.linalg.solve_discrete_are(A, B, Q, R)
     K = np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
     assert d.S.shape == (N + 1, 4, 4) and d.K.shape == (N, 2, 4)
@@ -222,13 +210,7 @@ def test_multiplicative_scalar_closed_form_and_gain_shrinks():
         S, k = _mult_scalar_fixed_point(a, b, q, r, s2)
         assert abs(float(d.S[i, 0, 0, 0]) - S) < 1e-10 * S
         assert abs(gains[i] - k) < 1e-10 * k
-    assert (
-        abs(
-            float(d.S[0, 0, 0, 0])
-            - scipy.linalg.solve_discrete_are([[a]], [[b]], [[q]], [[r]])[0, 0]
-        )
-        < 1e-10
-    )
+    assert abs(float(d.S[0, 0, 0, 0]) - scipy.linalg.solve_discrete_are([[a]], [[b]], [[q]], [[r]])[0, 0]) < 1e-10
     assert np.all(np.diff(gains) < 0)  # larger control-realization error -> more cautious gain
 
 
@@ -273,10 +255,7 @@ def test_expected_cost_exact_by_enumeration():
     K = np.asarray(d.K)
     J = expected_cost(K)
     assert abs(J - float(d.expected_cost(jnp.asarray(x0)))) < 1e-12 * J
-    assert (
-        float(d.c[0]) > 0
-        and abs(float(d.c[0]) - sum(np.trace(d.S[k + 1] @ W) for k in range(N))) < 1e-14
-    )
+    assert float(d.c[0]) > 0 and abs(float(d.c[0]) - sum(np.trace(d.S[k + 1] @ W) for k in range(N))) < 1e-14
     for k in range(N):
         for delta in (-1e-3, 1e-3):
             Kp = K.copy()
@@ -300,9 +279,7 @@ def test_zoh_double_integrator():
     np.testing.assert_allclose(Bd, [[dt * dt / 2], [dt]], atol=1e-15)
     A = np.array([[-0.5, 2.0], [-1.0, 0.1]])
     Ad, Bd = zoh_discretize(A, np.eye(2), dt)  # Bd = A^-1 (e^{A dt} - I)
-    np.testing.assert_allclose(
-        Bd, np.linalg.solve(A, scipy.linalg.expm(A * dt) - np.eye(2)), rtol=1e-13
-    )
+    np.testing.assert_allclose(Bd, np.linalg.solve(A, scipy.linalg.expm(A * dt) - np.eye(2)), rtol=1e-13)
 
 
 def test_propagate_covariance_stationary_is_discrete_lyapunov():
@@ -319,9 +296,7 @@ def test_propagate_covariance_stationary_is_discrete_lyapunov():
 def test_propagate_covariance_continuous_stationary_is_lyapunov():
     F = np.array([[-1.0, 2.0], [-0.5, -1.5]])
     W = np.array([[0.3, 0.05], [0.05, 0.2]])
-    _, Ps = propagate_covariance_continuous(
-        np.zeros((2, 2)), lambda t: jnp.asarray(F), W, 0.0, 40.0
-    )
+    _, Ps = propagate_covariance_continuous(np.zeros((2, 2)), lambda t: jnp.asarray(F), W, 0.0, 40.0)
     assert _rel(Ps[-1], scipy.linalg.solve_continuous_lyapunov(F, -W)) < 1e-9
 
 
@@ -439,9 +414,7 @@ _DI_W, _DI_P0, _DI_SIGMA_U = np.diag([0.01, 0.04]), np.diag([0.01, 0.02]), 0.1
 @pytest.fixture(scope="module")
 def double_integrator():
     prob = _linear_problem(_DI_A, _DI_B)
-    lin = linearize(
-        prob, _DI_CTRL, _DI_PARAMS, simulator=_DI_SIM, execution=ControlErrors(additive=_DI_SIGMA_U)
-    )
+    lin = linearize(prob, _DI_CTRL, _DI_PARAMS, simulator=_DI_SIM, execution=ControlErrors(additive=_DI_SIGMA_U))
     gains = tracking_lqr(lin, np.eye(2), 0.1 * np.eye(1), 10 * np.eye(2))
     noise = {
         "execution": ControlErrors(additive=_DI_SIGMA_U),
@@ -487,9 +460,7 @@ def test_monte_carlo_of_linear_system_matches_propagated_covariance(double_integ
     np.testing.assert_allclose(r.terminal_errors, r.final_states)  # E = x(tf) here
     np.testing.assert_allclose(r.terminal_covariance, np.cov(np.asarray(r.final_states).T))
     # the library's own linear covariance analysis agrees with the independent one
-    Pl = lin.predict_covariance(
-        gains if loop == "closed" else None, initial_covariance=_DI_P0, process_noise=_DI_W
-    )
+    Pl = lin.predict_covariance(gains if loop == "closed" else None, initial_covariance=_DI_P0, process_noise=_DI_W)
     assert Pl.shape == (51, 2, 2) and _rel(Pl[-1], P) < 1e-7
 
 

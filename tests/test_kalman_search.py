@@ -6,7 +6,6 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from helpers import ROUNDOFF_EPS, counting_problem, perturbed_starts
 
 import jaxtraj as jt
@@ -105,8 +104,7 @@ def test_bad_solver_settings():
 
 # Restricted optima of the seven parametrizations computed independently with scipy SLSQP
 # from 8-20 starts each (benchmarks/reference_optima.md; RK4(100), max|E| <= 1e-10).
-SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3.32153651,
-                6: 3.36688418, 7: 3.33474663}
+SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3.32153651, 6: 3.36688418, 7: 3.33474663}
 
 
 @pytest.mark.parametrize("case", range(1, 8))

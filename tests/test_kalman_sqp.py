@@ -7,21 +7,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
 from helpers import ROUNDOFF_EPS, perturbed_starts
+from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
 from jaxtraj._kalman_sqp import _merit, bfgs_update, convexify
+from jaxtraj._kkt import kkt_outcome, lagrangian_gradient
 from jaxtraj._sensitivity import evaluate_restricted
-from jaxtraj._kalman import kkt_outcome, lagrangian_gradient
 from jaxtraj._trust_region import lagrangian_hessian, min_norm_step, subproblem, trust_region_step
 from jaxtraj.baselines import solve_slsqp
 
 _bfgs = jax.jit(bfgs_update)
 _subproblem, _min_norm = jax.jit(subproblem), jax.jit(min_norm_step)
-SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3.32153651,
-                6: 3.36688418, 7: 3.33474663}  # benchmarks/reference_optima.md
+SLSQP_OPTIMA = {
+    1: 3.32009723,
+    2: 3.32075166,
+    3: 3.32079812,
+    4: 3.32488832,
+    5: 3.32153651,
+    6: 3.36688418,
+    7: 3.33474663,
+}  # benchmarks/reference_optima.md
 
 
 def _spd(rng, p, low=1.0, high=10.0):
@@ -78,8 +84,9 @@ def test_filter_step_is_the_qp_solution(p, m):
         rng = np.random.default_rng(seed)
         _, B = _spd(rng, p, 1e-3, 1e3)
         H, G_a, E = rng.normal(size=(m, p)), rng.normal(size=p), rng.normal(size=m)
-        ev = jt.Evaluation(xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(G_a), E=jnp.asarray(E),
-                           H=jnp.asarray(H), status=None)
+        ev = jt.Evaluation(
+            xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(G_a), E=jnp.asarray(E), H=jnp.asarray(H), status=None
+        )
         # one segment, knots that never approach each other: no ordering observation
         d, lam = direction(ev, jnp.asarray(B), jnp.zeros(m), jnp.array([0.0, 1.0]), jnp.zeros((2, p)))
         _check_qp(B, H, G_a, E, d, lam)
@@ -100,7 +107,7 @@ def test_convexify_keeps_the_qp_solution_and_is_positive_definite():
     rng = np.random.default_rng(3)
     p, m = 6, 2
     H = rng.normal(size=(m, p))
-    _, sv, Vt = np.linalg.svd(H)
+    _, _sv, Vt = np.linalg.svd(H)
     Z, Y = Vt[m:].T, Vt[:m].T  # null space and row space of H
     C = 0.3 * rng.normal(size=(p - m, m))
     for pull, shift_enough in ((0.5, True), (1e3, False)):
@@ -127,7 +134,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     d, lam_qp = solver._direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
     dlam, mu, phi0, slope = solver._line_search_start(ev, lam, 0.0, B, d, lam_qp)
     assert float(mu) > 0
-    phi = lambda t: _merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)  # noqa: E731
+    phi = lambda t: _merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)
     h = 1e-5
     fd = (phi(h) - phi(-h)) / (2 * h)
     assert abs(float(phi(0.0)) - float(phi0)) < 1e-14
@@ -181,8 +188,12 @@ def _reduced(rng, p, m):
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), p=st.sampled_from([3, 5, 8]), m=st.sampled_from([0, 1, 2]),
-       radius=st.floats(0.05, 20.0))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    p=st.sampled_from([3, 5, 8]),
+    m=st.sampled_from([0, 1, 2]),
+    radius=st.floats(0.05, 20.0),
+)
 def test_trust_region_subproblem_meets_its_optimality_conditions(seed, p, m, radius):
     """More-Sorensen: u = Z w with (Z^T W Z + sigma I) w = -Z^T g, sigma >= 0, |w| <= radius,
     sigma (|w| - radius) = 0 and Z^T W Z + sigma I positive semi-definite (the conditions of
@@ -209,7 +220,7 @@ def test_trust_region_subproblem_against_a_grid_in_two_dimensions():
     points of the disc (an independent brute-force reference)."""
     W, g, radius = np.array([[1.0, 0.3], [0.3, -2.0]]), np.array([0.4, 0.01]), 0.7
     u = np.asarray(subproblem(jnp.asarray(g), jnp.asarray(W), jnp.eye(2), radius))
-    q = lambda x: g @ x + 0.5 * x @ W @ x  # noqa: E731
+    q = lambda x: g @ x + 0.5 * x @ W @ x
     r, th = np.meshgrid(np.linspace(0, radius, 100), np.linspace(0, 2 * np.pi, 200))
     pts = np.stack([r.ravel() * np.cos(th.ravel()), r.ravel() * np.sin(th.ravel())], 1)
     best = min(q(x) for x in pts)
@@ -312,8 +323,7 @@ def test_min_energy_analytic_optimum(hessian):
     """u* = 6 - 12 t, energy 6 (tf = 1)."""
     prob = jt.problems.analytic.min_energy_double_integrator(1.0)
     ctrl = jt.controls.PiecewiseLinear(3)
-    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSQP(hessian=hessian),
-                   simulator=jt.RK4(4))
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSQP(hessian=hessian), simulator=jt.RK4(4))
     assert sol.status == jt.Status.SUCCESS
     assert abs(float(sol.objective) - 6.0) < 1e-10
     np.testing.assert_allclose(sol.params[:-1], 6.0 - 12.0 * np.linspace(0, 1, 4), atol=1e-7)
@@ -338,11 +348,23 @@ def test_batch_and_bad_start():
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"hessian": "newton"}, {"method": "fd"}, {"hessian": "exact", "method": "unit"}, {"ctol": 0.0},
-               {"armijo": 0.7}, {"radius": -1.0}, {"exact_iterations": -1}, {"exact_iterations": 1.5},
-               {"globalization": "dogleg"}, {"globalization": "trust-region"},
-               {"hessian": "exact", "globalization": "trust-region", "zeta": 1.0},
-               {"acceptable_gtol": 1e-10}, {"flat_steps": 0}, {"flat_steps": 2.0}]
+    "kwargs",
+    [
+        {"hessian": "newton"},
+        {"method": "fd"},
+        {"hessian": "exact", "method": "unit"},
+        {"ctol": 0.0},
+        {"armijo": 0.7},
+        {"radius": -1.0},
+        {"exact_iterations": -1},
+        {"exact_iterations": 1.5},
+        {"globalization": "dogleg"},
+        {"globalization": "trust-region"},
+        {"hessian": "exact", "globalization": "trust-region", "zeta": 1.0},
+        {"acceptable_gtol": 1e-10},
+        {"flat_steps": 0},
+        {"flat_steps": 2.0},
+    ],
 )
 def test_bad_settings(kwargs):
     with pytest.raises(ValueError, match="KalmanSQP"):
@@ -388,8 +410,17 @@ def test_trust_region_from_a_collapsed_segment():
     reaches the min-energy optimum 6."""
     prob = jt.problems.analytic.min_energy_double_integrator(1.0)
     ctrl = jt.controls.SaturatedSpline(3, 1, -20.0, 20.0)
-    a0 = jnp.array([0.0, 0.6023746488161783, 0.5883137069445501, 6.903470181651809, 2.0940122977608744,
-                    -2.7434992493538086, -6.921725376258419])
+    a0 = jnp.array(
+        [
+            0.0,
+            0.6023746488161783,
+            0.5883137069445501,
+            6.903470181651809,
+            2.0940122977608744,
+            -2.7434992493538086,
+            -6.921725376258419,
+        ]
+    )
     sol = jt.solve(prob, ctrl, a0, TRUST_REGION, simulator=jt.RK4(8), max_steps=300)
     assert sol.status == jt.Status.SUCCESS and abs(float(sol.objective) - 6.0) < 1e-8
     assert bool(sol.history.accepted[0])
@@ -430,16 +461,29 @@ def test_path_constraint_analytic_optimum(segments, hessian):
     whole coast arc t in [1/4, 3/4]."""
     prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
     ctrl = jt.controls.PiecewiseLinear(segments)
-    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSQP(hessian=hessian),
-                   simulator=jt.RK4(segments), max_steps=300)
+    sol = jt.solve(
+        prob,
+        ctrl,
+        ctrl.initial_guess(1.2, 0.0, 0.0),
+        jt.KalmanSQP(hessian=hessian),
+        simulator=jt.RK4(segments),
+        max_steps=300,
+    )
     assert sol.status == jt.Status.SUCCESS
     assert abs(float(sol.objective) - jt.problems.analytic.speed_limited_energy(1.2)) < 1e-8
     assert float(sol.max_path_constraint) <= 1e-10
     assert 0.25 - 1e-9 <= float(sol.max_path_time) <= 0.75 + 1e-9
     nodes = np.linspace(0.0, 1.0, segments + 1)
-    u_star = np.where(nodes < 0.25, 9.6 * (1 - nodes / 0.25), 0.0) - np.where(nodes > 0.75, 9.6 * (nodes - 0.75) / 0.25, 0.0)
+    u_star = np.where(nodes < 0.25, 9.6 * (1 - nodes / 0.25), 0.0) - np.where(
+        nodes > 0.75, 9.6 * (nodes - 0.75) / 0.25, 0.0
+    )
     np.testing.assert_allclose(sol.params[:-1], u_star, atol=1e-5)
     # without the limit the optimum is the unconstrained one (6), which violates it
-    free = jt.solve(jt.problems.analytic.min_energy_double_integrator(1.0), ctrl, ctrl.initial_guess(1.2, 0.0, 0.0),
-                    jt.KalmanSQP(), simulator=jt.RK4(segments))
+    free = jt.solve(
+        jt.problems.analytic.min_energy_double_integrator(1.0),
+        ctrl,
+        ctrl.initial_guess(1.2, 0.0, 0.0),
+        jt.KalmanSQP(),
+        simulator=jt.RK4(segments),
+    )
     assert abs(float(free.objective) - 6.0) < 1e-9

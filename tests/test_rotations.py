@@ -17,10 +17,7 @@ QS /= np.linalg.norm(QS, axis=1, keepdims=True)
 # Special quaternions: identity, half-turns (q4 = 0, Shepperd's hard case), tiny angles, and
 # attitudes at / next to gimbal lock (theta = +-90 deg, +-(90 - 1e-7) deg).
 _gl = [
-    (a, s * (np.pi / 2 - d), b)
-    for a, b in [(0.3, -1.2), (2.0, 2.5)]
-    for s in (1, -1)
-    for d in (0, 1e-7 * np.pi / 180)
+    (a, s * (np.pi / 2 - d), b) for a, b in [(0.3, -1.2), (2.0, 2.5)] for s in (1, -1) for d in (0, 1e-7 * np.pi / 180)
 ]
 SPECIAL = np.concatenate(
     [
@@ -90,9 +87,7 @@ def test_quaternion_product_composes_matrices_and_conjugate_inverts():
     np.testing.assert_allclose(ident, np.tile([0.0, 0, 0, 1], (200, 1)), atol=1e-15)
     # R(q) v == vec(q * (v, 0) * conj(q)) and rotate_vector is R(q) v.
     v = RNG.normal(size=3)
-    qvq = rot.quaternion_multiply(
-        rot.quaternion_multiply(q[0], jnp.append(v, 0.0)), rot.quaternion_conjugate(q[0])
-    )
+    qvq = rot.quaternion_multiply(rot.quaternion_multiply(q[0], jnp.append(v, 0.0)), rot.quaternion_conjugate(q[0]))
     np.testing.assert_allclose(qvq[:3], to_m(q[:1])[0] @ v, atol=1e-14)
     np.testing.assert_allclose(rot.rotate_vector(q[0], v), qvq[:3], atol=1e-14)
 
@@ -119,7 +114,7 @@ def test_euler_rate_is_seed_eq5_and_matches_its_derivation():
     es = np.c_[RNG.uniform(-np.pi, np.pi, 300), RNG.uniform(-1.4, 1.4, 300), RNG.uniform(-np.pi, np.pi, 300)]
     ws = RNG.normal(size=(300, 3))
     rates = jax.vmap(rot.euler_zyx_rate)(es, ws)
-    for (psi, th, ph), w, r in zip(es[:50], ws[:50], rates[:50]):
+    for (_psi, th, ph), w, r in zip(es[:50], ws[:50], rates[:50]):
         M = np.array(  # seed eq. 5, vector (phi, theta, psi)
             [
                 [1, np.tan(th) * np.sin(ph), np.tan(th) * np.cos(ph)],
@@ -232,13 +227,8 @@ def test_quaternion_euler_round_trip():
     # euler_zyx_to_quaternion is qz(psi) * qy(theta) * qx(phi).
     for psi, th, ph in es[:20]:
         axis_q = lambda i, a: np.r_[np.sin(a / 2) * np.eye(3)[i], np.cos(a / 2)]
-        composed = rot.quaternion_multiply(
-            rot.quaternion_multiply(axis_q(2, psi), axis_q(1, th)), axis_q(0, ph)
-        )
-        assert (
-            same_up_to_sign(composed[None], rot.euler_zyx_to_quaternion(np.array([psi, th, ph]))[None])
-            < 1e-15
-        )
+        composed = rot.quaternion_multiply(rot.quaternion_multiply(axis_q(2, psi), axis_q(1, th)), axis_q(0, ph))
+        assert same_up_to_sign(composed[None], rot.euler_zyx_to_quaternion(np.array([psi, th, ph]))[None]) < 1e-15
 
 
 # --------------------------------------------------------------------------------------------
@@ -250,9 +240,7 @@ def test_against_scipy():
     """scipy: `from_quat`/`as_quat` are scalar-last Hamilton quaternions like ours (body->
     inertial `as_matrix`); our (psi, theta, phi) is scipy's intrinsic "ZYX" sequence."""
     R_sp = Rotation.from_quat(ALL_QS)
-    np.testing.assert_allclose(
-        jax.vmap(rot.quaternion_to_matrix)(ALL_QS), R_sp.as_matrix(), atol=1e-12, rtol=0
-    )
+    np.testing.assert_allclose(jax.vmap(rot.quaternion_to_matrix)(ALL_QS), R_sp.as_matrix(), atol=1e-12, rtol=0)
     got = jax.vmap(rot.matrix_to_quaternion)(R_sp.as_matrix())
     assert same_up_to_sign(got, R_sp.as_quat()) < 1e-12
     P, Q = Rotation.from_quat(QS[:1000]), Rotation.from_quat(QS[1000:])
@@ -268,9 +256,7 @@ def test_against_scipy():
     # Away from gimbal lock the angles themselves agree (both unique there).
     qs_ok = QS[np.abs(Rotation.from_quat(QS).as_euler("ZYX")[:, 1]) < 1.4]
     assert (
-        np.abs(
-            wrap(jax.vmap(rot.quaternion_to_euler_zyx)(qs_ok) - Rotation.from_quat(qs_ok).as_euler("ZYX"))
-        ).max()
+        np.abs(wrap(jax.vmap(rot.quaternion_to_euler_zyx)(qs_ok) - Rotation.from_quat(qs_ok).as_euler("ZYX"))).max()
         < 1e-12
     )
 

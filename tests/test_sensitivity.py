@@ -25,7 +25,7 @@ def _ids(examples):
 def test_families_forward_unit_fd_agree(prob, ctrl, a):
     xf_f, J_f = jt.sensitivities(prob, ctrl, a, "forward", simulator=SIM)
     xf_u, J_u = jt.sensitivities(prob, ctrl, a, "unit", simulator=SIM)
-    xf_d, J_d = jt.sensitivities(prob, ctrl, a, "fd", simulator=SIM)
+    _xf_d, J_d = jt.sensitivities(prob, ctrl, a, "fd", simulator=SIM)
     assert J_f.shape == (3, ctrl.num_params)
     assert rel_err(xf_u, xf_f) < 1e-13
     assert rel_err(J_u, J_f) < 1e-9
@@ -51,8 +51,12 @@ def test_unit_solution_converges_to_forward_at_fourth_order():
     gaps = []
     for n in (50, 100, 200):
         sim = jt.RK4(n)
-        gaps.append(rel_err(jt.sensitivities(prob, ctrl, a0, "unit", simulator=sim)[1],
-                            jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1]))
+        gaps.append(
+            rel_err(
+                jt.sensitivities(prob, ctrl, a0, "unit", simulator=sim)[1],
+                jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1],
+            )
+        )
     ratios = np.array(gaps[:-1]) / np.array(gaps[1:])
     assert np.all((ratios > 12) & (ratios < 20)), gaps
 
@@ -92,7 +96,7 @@ def test_jit_and_vmap_match_single_calls():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
     a0s = a0[None, :] + 0.01 * jax.random.normal(jax.random.PRNGKey(0), (5, ctrl.num_params))
     for method in ("forward", "unit"):
-        fn = lambda a: jt.sensitivities(prob, ctrl, a, method)  # noqa: E731
+        fn = lambda a, method=method: jt.sensitivities(prob, ctrl, a, method)
         batched = jax.jit(jax.vmap(fn))(a0s)
         for i in range(5):
             single = fn(a0s[i])

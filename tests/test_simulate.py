@@ -16,7 +16,7 @@ def test_double_integrator_exact_with_piecewise_linear_control():
     a = jnp.array([1.0, 3.0, 0.7, -2.0, 0.5, 1.9])
     xf = jt.simulate(prob, ctrl, a, simulator=jt.RK4(3)).xf
     # segment 1: u = 1 + 2t/0.7 on [0, 0.7]; segment 2: u = -2 + 2.5 s/1.2, s = t - 0.7 on [0, 1.2]
-    v1 = 0.7 + 0.7                       # int u = 0.7 + (2/0.7) 0.7^2/2
+    v1 = 0.7 + 0.7  # int u = 0.7 + (2/0.7) 0.7^2/2
     x1 = 0.7**2 / 2 + (2 / 0.7) * 0.7**3 / 6
     h = 1.2
     v2 = v1 - 2 * h + 2.5 / h * h**2 / 2
@@ -52,9 +52,7 @@ def test_diffrax_failure_is_a_status_not_an_exception():
 
 def test_blow_up_is_reported_as_nonfinite():
     """x' = x^2 + u from x(0) = 1 escapes to infinity at t = 1: Status.NONFINITE, no exception."""
-    prob = jt.Problem(
-        lambda t, x, u, args: x**2 + u, [1.0], lambda tf, xf, args: xf, ("x",), name="blow-up"
-    )
+    prob = jt.Problem(lambda t, x, u, args: x**2 + u, [1.0], lambda tf, xf, args: xf, ("x",), name="blow-up")
     ctrl = jt.controls.PiecewiseConstant(1)
     a = jnp.array([0.0, 5.0])
     assert jt.simulate(prob, ctrl, a, simulator=jt.RK4(50)).status == jt.Status.NONFINITE

@@ -244,7 +244,7 @@ def test_diagnose_flags_spurious_outcomes():
 def test_optimal_pitch_minimizes_the_hamiltonian():
     grid = np.linspace(-math.pi / 2, math.pi / 2, 200001)
     rng = np.random.default_rng(3)
-    for lu, lv in list(rng.normal(size=(20, 2))) + [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -2.0)]:
+    for lu, lv in [*list(rng.normal(size=(20, 2))), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -2.0)]:
         vals = lu * np.cos(grid) ** 3 + lv * np.cos(grid) ** 2 * np.sin(grid)
         al = ss.optimal_pitch(lu, lv)
         assert -math.pi / 2 <= al <= math.pi / 2
@@ -397,7 +397,7 @@ def test_orbit_plane_takes_the_state_layout_from_the_problem(which):
     np.testing.assert_allclose(x, np.cos(t), atol=1e-9)
     np.testing.assert_allclose(y, np.sin(t), atol=1e-9)
 
-    plt = plot._plt()
+    plt = plot.pyplot()
     fig, ax = plt.subplots()
     plot.orbit_plane(ax, traj, 1.5, layout=prob)
     (line,) = [ln for ln in ax.lines if ln.get_label() == "transfer"]
@@ -435,8 +435,16 @@ def test_kalman_solvers_reach_each_target(solver, target, pitch_deg, tf_days_ind
     # the start and two round-off-sized perturbations of it (another CPU's last bits): the
     # same outcome every time (before issue 17, KalmanSQP STALLED on 11 of 33 such starts,
     # its projected-gradient floor sitting at its tolerance)
-    sols = jt.solve_batch(prob, ctrl, perturbed_starts(a0), kalman, simulator=jt.RK4(100), max_steps=max_steps,
-                          progress=False, history=False)
+    sols = jt.solve_batch(
+        prob,
+        ctrl,
+        perturbed_starts(a0),
+        kalman,
+        simulator=jt.RK4(100),
+        max_steps=max_steps,
+        progress=False,
+        history=False,
+    )
     assert jt.status_name(sols.status).tolist() == ["SUCCESS"] * len(ROUNDOFF_EPS)
     tf_days = np.asarray(sols.tf) * ss.DAYS_PER_UNIT
     assert np.ptp(tf_days) <= 1e-6  # measured: <= 1e-8 d

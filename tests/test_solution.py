@@ -37,9 +37,12 @@ def _distance_bound(sol):
     h = 1.0 / 3.0
     M = np.zeros((5, 5))
     M[:4, :4] = h / 6.0 * np.array([[2, 1, 0, 0], [1, 4, 1, 0], [0, 1, 4, 1], [0, 0, 1, 2]])
-    H = np.asarray(jt.evaluate(jt.problems.analytic.min_energy_double_integrator(), jt.controls.PiecewiseLinear(3),
-                               jnp.asarray(A_STAR)).H)
-    Z = np.linalg.svd(H)[2][H.shape[0]:].T
+    H = np.asarray(
+        jt.evaluate(
+            jt.problems.analytic.min_energy_double_integrator(), jt.controls.PiecewiseLinear(3), jnp.asarray(A_STAR)
+        ).H
+    )
+    Z = np.linalg.svd(H)[2][H.shape[0] :].T
     lam_min = np.linalg.eigvalsh(Z.T @ M @ Z)[0]
     sigma_min = np.linalg.svd(H, compute_uv=False)[-1]
     return float(sol.projected_gradient) / lam_min + np.sqrt(3) * SOLVER.e_a / sigma_min

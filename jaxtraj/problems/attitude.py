@@ -226,7 +226,7 @@ def problem(
     if J.shape != (3,) or not np.all(J > 0):
         raise ValueError(f"`inertia` must be three positive moments [kg m^2]; got {inertia!r}.")
     q0, qf = _unit(q0, "q0", 4), _unit(qf, "qf", 4)
-    f64 = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
+    f64 = lambda v: jnp.asarray(v, dtype=jnp.float64)
     args = {
         "inertia": f64(J),
         "gain": f64(time_unit**2 * torque_unit),
@@ -359,8 +359,13 @@ def _finer(simulator: AbstractSimulator, factor: int) -> AbstractSimulator:
     if isinstance(simulator, RK4):
         return RK4(simulator.steps * factor)
     if isinstance(simulator, Diffrax):
-        return Diffrax(simulator.solver, simulator.rtol, simulator.atol, simulator.max_steps,
-                       (simulator.dense_points - 1) * factor + 1)
+        return Diffrax(
+            simulator.solver,
+            simulator.rtol,
+            simulator.atol,
+            simulator.max_steps,
+            (simulator.dense_points - 1) * factor + 1,
+        )
     raise ValueError(f"`simulator` must be jt.RK4 or jt.Diffrax; got {type(simulator).__name__}.")
 
 

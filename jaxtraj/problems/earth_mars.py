@@ -125,8 +125,6 @@ def thesis_case(n: int):
     return problem(), ctrl, jnp.asarray(ctrl.validate(a0))
 
 
-
-
 # Published tuning per test (seed 000, headers of Tables 5.1-5.13): rho and beta_p0 (beta =
 # beta_p = beta_0 = 1 throughout). Where the OCR lost the value (tests 4 and 6) the default
 # beta_p0 = 2 of the neighbouring tests is used.

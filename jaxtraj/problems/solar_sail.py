@@ -276,7 +276,9 @@ def penalty_objective(
     l = problem.num_constraints
     w_shape = np.shape(weights)
     if w_shape != (l + 1,):
-        raise ValueError(f"`weights` must have {l + 1} entries (time, then one per terminal constraint); got shape {w_shape}.")
+        raise ValueError(
+            f"`weights` must have {l + 1} entries (time, then one per terminal constraint); got shape {w_shape}."
+        )
     if not isinstance(weights, jax.Array | jax.core.Tracer):
         w = np.asarray(weights, dtype=np.float64)
         if not np.all(np.isfinite(w)) or np.any(w < 0):
@@ -383,7 +385,9 @@ def feathered_fraction(control: AbstractControl, a, *, tol_deg: float = 5.0, sam
     """
     if not (isinstance(samples, int) and samples >= 1):
         raise ValueError(f"`samples` must be an int >= 1; got {samples!r}.")
-    return _feathered_fraction(control, jnp.asarray(a, dtype=jnp.float64), jnp.asarray(tol_deg, dtype=jnp.float64), samples)
+    return _feathered_fraction(
+        control, jnp.asarray(a, dtype=jnp.float64), jnp.asarray(tol_deg, dtype=jnp.float64), samples
+    )
 
 
 @eqx.filter_jit
@@ -473,7 +477,10 @@ def _state_costate_rhs(a0, mu):
             v * v / r - mu / r**2 + thrust_r / r**2,
             -u * v / r + thrust_t / r**2,
             # lambda' = -dH/dx (lambda_theta = 0: theta is free and absent from f)
-            -(lu * (-v * v / r**2 + 2.0 * mu / r**3 - 2.0 * thrust_r / r**3) + lv * (u * v / r**2 - 2.0 * thrust_t / r**3)),
+            -(
+                lu * (-v * v / r**2 + 2.0 * mu / r**3 - 2.0 * thrust_r / r**3)
+                + lv * (u * v / r**2 - 2.0 * thrust_t / r**3)
+            ),
             -(lr - lv * v / r),
             -(2.0 * lu * v / r - lv * u / r),
         ]
@@ -549,7 +556,9 @@ def solve_indirect(
         pitch_guesses_deg = [sign * d for d in (35.0, 20.0, 50.0)]
     pitch_guesses_deg = [float(d) for d in pitch_guesses_deg]
     if not pitch_guesses_deg or not all(0.0 < abs(d) < 90.0 for d in pitch_guesses_deg):
-        raise ValueError(f"`pitch_guesses_deg` must be non-empty, each in (-90, 0) or (0, 90); got {pitch_guesses_deg}.")
+        raise ValueError(
+            f"`pitch_guesses_deg` must be non-empty, each in (-90, 0) or (0, 90); got {pitch_guesses_deg}."
+        )
     if not (isinstance(dense_points, int) and dense_points >= 2):
         raise ValueError(f"`dense_points` must be an int >= 2; got {dense_points!r}.")
     rhs = _state_costate_rhs(a0, mu)
@@ -615,6 +624,7 @@ __all__ = [
     "CONSTRAINT_NAMES",
     "DAYS_PER_UNIT",
     "DEFAULT_WEIGHTS",
+    "KALMAN_SEARCH_TUNING",
     "KELLEY_A0",
     "KELLEY_RF",
     "STATE_NAMES",
@@ -623,7 +633,6 @@ __all__ = [
     "TF_KELLEY",
     "TF_KELLEY_INDIRECT",
     "IndirectResult",
-    "KALMAN_SEARCH_TUNING",
     "box",
     "diagnose",
     "dynamics",
