@@ -76,13 +76,9 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from . import io as _io
+from ._checks import check_problem_and_control
 from ._driver import AbstractSolver, init_state, run, run_loop
-from ._simulate import (
-    RK4,
-    AbstractSimulator,
-    check_problem_and_control,
-    check_simulator,
-)
+from ._simulate import RK4, AbstractSimulator, check_simulator
 from ._solution import Solution
 from ._solve import check_solver
 from ._status import STATUS_NAMES, Status

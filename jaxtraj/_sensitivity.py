@@ -22,11 +22,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._checks import check_inputs
 from ._problem import Problem
 from ._simulate import (
     RK4,
     AbstractSimulator,
-    check_inputs,
     check_simulator,
     final_state,
     integrate_segments,

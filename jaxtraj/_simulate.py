@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._checks import check_inputs
 from ._problem import Problem
 from ._status import Status
 from .controls import AbstractControl
@@ -242,34 +243,6 @@ class Trajectory(eqx.Module):
     @property
     def tf(self):
         return self.knots[..., -1]
-
-
-def check_problem_and_control(problem: Problem, control: AbstractControl):
-    """Outside-jit type and compatibility checks of the public entry points."""
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
-            "Call jax.config.update('jax_enable_x64', True)."
-        )
-    if not isinstance(problem, Problem):
-        raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
-    if not isinstance(control, AbstractControl):
-        raise ValueError(f"`control` must be a jaxtraj control (jt.controls.*); got {type(control).__name__}.")
-    if control.num_controls != problem.num_controls:
-        raise ValueError(
-            f"`control` has {control.num_controls} channel(s) but `problem` {problem.name!r} "
-            f"expects num_controls={problem.num_controls}."
-        )
-
-
-def check_inputs(problem: Problem, control: AbstractControl, a):
-    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
-    check_problem_and_control(problem, control)
-    if isinstance(a, jax.core.Tracer):
-        if a.shape != (control.num_params,):
-            raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
-        return a.astype(jnp.float64)
-    return jnp.asarray(control.validate(a))
 
 
 def check_simulator(simulator):

@@ -1,9 +1,10 @@
 """`jt.solve`: check the input, pick the default solver, run the driver."""
 
+from ._checks import check_inputs
 from ._driver import AbstractSolver, check_max_steps, run
 from ._kalman_sqp import KalmanSQP
 from ._problem import Problem
-from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
+from ._simulate import RK4, AbstractSimulator, check_simulator
 from ._solution import Solution
 from .controls import AbstractControl
 

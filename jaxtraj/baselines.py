@@ -20,10 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from ._checks import check_inputs
 from ._kkt import path_rows
 from ._problem import Problem
 from ._sensitivity import check_method, evaluate_jitted
-from ._simulate import RK4, AbstractSimulator, check_inputs, check_simulator
+from ._simulate import RK4, AbstractSimulator, check_simulator
 from ._status import Status
 from .controls import AbstractControl
 

@@ -60,6 +60,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._checks import require_float64
 from ._status import Status
 
 _DECAYS = ("linear", "quadratic")
@@ -537,11 +538,7 @@ def minimize(
 
     **Raises:** `ValueError` for bad input (outside jit); `RuntimeError` if float64 is off.
     """
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
-            "Call jax.config.update('jax_enable_x64', True)."
-        )
+    require_float64()
     if not isinstance(optimizer, AbstractPopulationOptimizer):
         raise ValueError(
             f"`optimizer` must be a jaxtraj population optimizer (GreyWolf, Whale, Dragonfly); "

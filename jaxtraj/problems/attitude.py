@@ -67,8 +67,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import rotations
+from .._checks import check_inputs
 from .._problem import Problem
-from .._simulate import RK4, AbstractSimulator, Diffrax, check_inputs, check_simulator, simulate
+from .._simulate import RK4, AbstractSimulator, Diffrax, check_simulator, simulate
 from ..controls import SaturatedSpline
 
 #: Default sun direction (inertial, unit): both end attitudes 0.5 deg outside a 50 deg cone.

@@ -51,8 +51,9 @@ import numpy as np
 import scipy.integrate
 import scipy.optimize
 
+from .._checks import check_problem_and_control
 from .._problem import Problem
-from .._simulate import RK4, AbstractSimulator, check_problem_and_control, check_simulator, final_state
+from .._simulate import RK4, AbstractSimulator, check_simulator, final_state
 from .._status import Status
 from ..controls import AbstractControl, SaturatedSpline
 

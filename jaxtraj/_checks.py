@@ -1,0 +1,47 @@
+"""Input checks of the public entry points (outside jit): float64 mode, problem and control
+types, the parameter vector. Errors name the argument."""
+
+import jax
+import jax.numpy as jnp
+
+from ._problem import Problem
+from .controls import AbstractControl
+
+
+def require_float64():
+    """Raise a RuntimeError unless JAX's float64 mode is on (jaxtraj turns it on at import)."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
+            "Call jax.config.update('jax_enable_x64', True)."
+        )
+
+
+def as_float64(x):
+    """`x` as a float64 array, after `require_float64`."""
+    require_float64()
+    return jnp.asarray(x, dtype=jnp.float64)
+
+
+def check_problem_and_control(problem: Problem, control: AbstractControl):
+    """Outside-jit type and compatibility checks of the public entry points."""
+    require_float64()
+    if not isinstance(problem, Problem):
+        raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
+    if not isinstance(control, AbstractControl):
+        raise ValueError(f"`control` must be a jaxtraj control (jt.controls.*); got {type(control).__name__}.")
+    if control.num_controls != problem.num_controls:
+        raise ValueError(
+            f"`control` has {control.num_controls} channel(s) but `problem` {problem.name!r} "
+            f"expects num_controls={problem.num_controls}."
+        )
+
+
+def check_inputs(problem: Problem, control: AbstractControl, a):
+    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+    check_problem_and_control(problem, control)
+    if isinstance(a, jax.core.Tracer):
+        if a.shape != (control.num_params,):
+            raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
+        return a.astype(jnp.float64)
+    return jnp.asarray(control.validate(a))
