@@ -51,17 +51,18 @@ outer update), so an L-BFGS step costs 1 + (line-search trials) integrations, an
 L-BFGS memory restarts at each outer iteration (new coordinates), after a rejected step, and
 when a stored pair has no positive curvature (optax does not check).
 
-**Box by projection** (`ParameterBox`). Parameters that are control values (node values of
-`PiecewiseLinear`, end values of `PiecewiseParabolic` arcs, levels of `PiecewiseConstant`,
-coefficients of `SaturatedSpline`, intersected with its own bounds) are kept in
-[problem.control_lower, problem.control_upper]; the slopes of parabolic arcs are free (so a
-parabola may bulge past a bound between its ends). Times: a lone tf is kept >= K
+**Box by projection** (`ParameterBox`). Parameters that are control values (the family's
+`value_indices`: node values of `PiecewiseLinear`, end values of `PiecewiseParabolic` arcs,
+levels of `PiecewiseConstant`, coefficients of `SaturatedSpline`, intersected with its own
+`limits`) are kept in [problem.control_lower, problem.control_upper]; the slopes of parabolic
+arcs are free (so a parabola may bulge past a bound between its ends). Times: a lone tf is kept >= K
 `min_duration`, free knot times t_1 < ... < t_K are kept at least `min_duration` apart by
 t_k <- max(t_k, t_{k-1} + min_duration) (a cumulative max), and durations are kept >=
 `min_duration`. The start a0 is projected first, and every new iterate. The gradient handed to
 the inner minimizer is the *reduced* gradient (components at a bound whose descent direction
 leaves the box are zeroed), so the search treats such a bound as binding; the convergence
-measures use the same reduced gradient. Controls of other (user) families get no bounds.
+measures use the same reduced gradient. A family with no control-value parameters and no
+limits of its own cannot take declared control bounds: the solver raises a ValueError.
 
 **Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
 reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones)
@@ -88,7 +89,7 @@ from ._driver import AbstractSolver
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._status import Status
-from .controls import PiecewiseConstant, PiecewiseLinear, PiecewiseParabolic, SaturatedSpline
+from .controls import value_bounds
 
 # ------------------------------------------------------------------------------------------
 # The parameter box
@@ -132,50 +133,31 @@ class ParameterBox(eqx.Module):
         return g
 
 
-def _value_indices(control):
-    """`(indices, channel)` of the parameters that are control values, or None if the family
-    is unknown."""
-    n = control.num_params
-    times = set(control.time_indices)
-    if isinstance(control, (PiecewiseLinear, PiecewiseConstant)):
-        idx = [i for i in range(n) if i not in times]
-        return idx, [0] * len(idx)
-    if isinstance(control, PiecewiseParabolic):
-        stride = 4 if control.free_times else 3
-        idx = [stride * k + j for k in range(control.segments) for j in (0, 2)]
-        return idx, [0] * len(idx)
-    if isinstance(control, SaturatedSpline):
-        start, P = len(control.time_indices), control.segments
-        idx = [start + j * (P + 1) + i for j in range(control.num_controls) for i in range(P + 1)]
-        return idx, [j for j in range(control.num_controls) for _ in range(P + 1)]
-    return None
-
-
 def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
-    """The `ParameterBox` of `control`'s parameters for `problem` (see the module docs).
-    Pure (usable inside jit: the problem's bounds may be traced)."""
+    """The `ParameterBox` of `control`'s parameters for `problem` (see the module docs), from
+    the family's declared layout (`value_indices`, `limits`, `time_layout`). Pure (usable
+    inside jit: the problem's bounds may be traced).
+
+    **Raises:** `ValueError` (at trace time) if `problem` declares control bounds that the
+    family has no control-value parameters for."""
     n = control.num_params
     lower = jnp.full(n, -jnp.inf)
     upper = jnp.full(n, jnp.inf)
-    values = _value_indices(control)
-    if values is None:
-        return ParameterBox(lower, upper)
-    idx, channel = np.asarray(values[0], int), np.asarray(values[1], int)
-    lo_u = jnp.full(problem.num_controls, -jnp.inf) if problem.control_lower is None else problem.control_lower
-    hi_u = jnp.full(problem.num_controls, jnp.inf) if problem.control_upper is None else problem.control_upper
-    if isinstance(control, SaturatedSpline):
-        lo_u, hi_u = jnp.maximum(lo_u, control.lower), jnp.minimum(hi_u, control.upper)
+    bounded = problem.control_lower is not None or problem.control_upper is not None
+    idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
+    if bounded and not idx.size and control.limits is None:
+        raise ValueError(
+            f"`control`: {type(control).__name__} declares no control-value parameters "
+            "(`value_indices`), so AugmentedLagrangian cannot honor the problem's control_lower/control_upper."
+        )
     if idx.size:
-        lower = lower.at[idx].set(lo_u[channel])
-        upper = upper.at[idx].set(hi_u[channel])
-    times = list(control.time_indices)
-    K = control.num_segments
-    if isinstance(control, SaturatedSpline) and control.free_durations:
-        return ParameterBox(lower.at[np.asarray(times)].set(min_duration), upper)
-    if len(times) == 1:  # tf alone, equally spaced knots
-        return ParameterBox(lower.at[times[0]].set(K * min_duration), upper)
-    # free knot times: a[times] = t_1, ..., t_K (every family of jaxtraj.controls)
-    return ParameterBox(lower, upper, tuple(times), float(min_duration))
+        lower, upper = lower.at[idx].set(lo), upper.at[idx].set(hi)
+    times = np.asarray(control.time_indices, int)
+    if control.time_layout == "durations":
+        return ParameterBox(lower.at[times].set(min_duration), upper)
+    if control.time_layout == "final_time":  # tf alone, equally spaced knots
+        return ParameterBox(lower.at[times[0]].set(control.num_segments * min_duration), upper)
+    return ParameterBox(lower, upper, tuple(int(t) for t in times), float(min_duration))
 
 
 # ------------------------------------------------------------------------------------------

@@ -82,13 +82,7 @@ from ._simulate import RK4, AbstractSimulator, check_simulator
 from ._solution import Solution
 from ._solve import check_solver
 from ._status import STATUS_NAMES, Status
-from .controls import (
-    AbstractControl,
-    PiecewiseConstant,
-    PiecewiseLinear,
-    PiecewiseParabolic,
-    SaturatedSpline,
-)
+from .controls import AbstractControl, value_bounds
 
 _AXIS = "starts"
 _FORMAT = "jaxtraj-batch-1"
@@ -470,33 +464,6 @@ def solve_batch(
 # ---------------------------------------------------------------------- multistart
 
 
-def _value_slots(control: AbstractControl, problem):
-    """`(indices, lower, upper)`: entries of `a` that are control values, with the bounds
-    that apply to them (the problem's `control_lower/upper` and a `SaturatedSpline`'s
-    limits). Other entries (slopes, times) are left unbounded."""
-    num_times = set(control.time_indices)
-    idx = [i for i in range(control.num_params) if i not in num_times]
-    channel = np.zeros(control.num_params, int)
-    if isinstance(control, PiecewiseParabolic):
-        width = 4 if control.free_times else 3
-        idx = [i for i in idx if i % width != 1 or i >= width * control.segments]  # drop the slopes
-    elif isinstance(control, SaturatedSpline):
-        nt = len(control.time_indices)
-        channel[nt:] = np.arange(control.num_params - nt) // (control.segments + 1)
-    elif not isinstance(control, (PiecewiseLinear, PiecewiseConstant)):
-        idx = []  # unknown family: no bounds applied
-    q = control.num_controls
-    lo, hi = np.full(q, -np.inf), np.full(q, np.inf)
-    if problem.control_lower is not None:
-        lo = np.maximum(lo, np.asarray(problem.control_lower))
-    if problem.control_upper is not None:
-        hi = np.minimum(hi, np.asarray(problem.control_upper))
-    if isinstance(control, SaturatedSpline):
-        lo, hi = np.maximum(lo, np.asarray(control.lower)), np.minimum(hi, np.asarray(control.upper))
-    idx = np.asarray(idx, int)
-    return idx, lo[channel[idx]], hi[channel[idx]]
-
-
 @eqx.filter_jit
 def _draws(control, around, key, n):
     """Knots of `around`, their Jacobian, and the normal draws of `random_starts` (one
@@ -521,8 +488,8 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
       increasing and tf > 0 by construction.
     - Every other entry gets additive noise spread * s * z, with s the RMS of those entries
       of `around` (1 if they are all zero); `spread` may also be an array `(num_params,)`.
-    - Control values are clipped to the bounds of the problem (`control_lower/upper`) and of
-      a `SaturatedSpline`.
+    - Control values (the family's `value_indices`) are clipped to the bounds of the problem
+      (`control_lower/upper`) and the family's own `limits`.
     """
     around = jnp.asarray(control.validate(around))
     n = _check_int("n", n, 1)
@@ -547,8 +514,8 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     scale = float(np.sqrt(np.mean(vals**2))) if vals.size and np.any(vals != 0) else 1.0
     starts = np.asarray(around)[None, :] + spread * scale * noise
     starts[:, t_idx] = times
-    idx, lo, hi = _value_slots(control, problem)
-    starts[:, idx] = np.clip(starts[:, idx], lo, hi)
+    idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
+    starts[:, idx] = np.clip(starts[:, idx], np.asarray(lo), np.asarray(hi))
     # check the promise (vectorized version of control.validate's ordering checks)
     kn = np.asarray(_all_knots(control, jnp.asarray(starts)))
     if not (np.all(np.isfinite(starts)) and np.all(np.diff(kn, axis=1) > 0) and np.all(kn[:, -1] > 0)):

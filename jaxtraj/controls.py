@@ -11,6 +11,7 @@ one; `time_indices` says which entries of `a` are times (node times, durations o
 """
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -37,9 +38,35 @@ class AbstractControl(eqx.Module):
         """Indices of the entries of `a` that are times (node/switch times, durations, tf)."""
 
     @property
+    @abc.abstractmethod
+    def time_layout(self) -> str:
+        """How the entries `time_indices` make the knots: `"final_time"` (one entry, tf; equally
+        spaced knots), `"knots"` (t_1 < ... < t_K = tf) or `"durations"` (h_1, ..., h_K >= 0,
+        tf = their sum). Solvers and batching derive time bounds and random starts from it."""
+
+    @property
     def num_controls(self) -> int:
         """Number of control channels."""
         return 1
+
+    @property
+    def value_indices(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """`(indices, channels)`: the entries of `a` that are control values (u at a node, a
+        level, a spline coefficient), and the channel of each. Solvers impose a bound on u as
+        the same bound on these entries: exact for piecewise linear and constant controls and
+        splines, on the nodes only for parabolic arcs. Default: none."""
+        return (), ()
+
+    @property
+    def limits(self) -> tuple[jax.Array, jax.Array] | None:
+        """`(lower, upper)` `(num_controls,)` if the family saturates u by construction, else
+        None."""
+        return None
+
+    #: `segment_data` (the knots and `segment_table`) is affine in `a`; the sensitivities then
+    #: differentiate each integration step along fewer directions. Declare it only when true:
+    #: the default, False, is always correct.
+    affine: ClassVar[bool] = False
 
     @abc.abstractmethod
     def knots(self, a) -> jax.Array:
@@ -124,6 +151,20 @@ class AbstractControl(eqx.Module):
             )
 
 
+def value_bounds(control: AbstractControl, lower=None, upper=None):
+    """`(indices, lo, hi)`: the entries of `a` that are control values (`value_indices`) and
+    their bounds, from `lower`/`upper` `(num_controls,)` (a problem's control bounds; None:
+    unbounded) intersected with the family's own `limits`. Traceable (jnp)."""
+    idx, channel = control.value_indices
+    q = control.num_controls
+    lo = jnp.full(q, -jnp.inf) if lower is None else jnp.broadcast_to(jnp.asarray(lower, jnp.float64), (q,))
+    hi = jnp.full(q, jnp.inf) if upper is None else jnp.broadcast_to(jnp.asarray(upper, jnp.float64), (q,))
+    if control.limits is not None:
+        lo, hi = jnp.maximum(lo, control.limits[0]), jnp.minimum(hi, control.limits[1])
+    channel = np.asarray(channel, int)
+    return np.asarray(idx, int), lo[channel], hi[channel]
+
+
 def _check_segments(segments, name="segments"):
     if not (isinstance(segments, int) and not isinstance(segments, bool) and segments >= 1):
         raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
@@ -154,9 +195,19 @@ class PiecewiseLinear(AbstractControl):
     segments: int
     continuous: bool = True
     free_times: bool = False
+    affine: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+
+    @property
+    def time_layout(self):
+        return "knots" if self.free_times else "final_time"
+
+    @property
+    def value_indices(self):
+        idx = tuple(i for i in range(self.num_params) if i not in set(self.time_indices))
+        return idx, (0,) * len(idx)
 
     @property
     def num_segments(self):
@@ -238,9 +289,21 @@ class PiecewiseParabolic(AbstractControl):
 
     segments: int
     free_times: bool = True
+    affine: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+
+    @property
+    def time_layout(self):
+        return "knots" if self.free_times else "final_time"
+
+    @property
+    def value_indices(self):
+        """u_start and u_end of each arc (the slopes are not control values)."""
+        stride = 4 if self.free_times else 3
+        idx = tuple(stride * k + j for k in range(self.segments) for j in (0, 2))
+        return idx, (0,) * len(idx)
 
     @property
     def num_segments(self):
@@ -297,9 +360,19 @@ class PiecewiseConstant(AbstractControl):
 
     segments: int
     free_times: bool = True
+    affine: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+
+    @property
+    def time_layout(self):
+        return "knots" if self.free_times else "final_time"
+
+    @property
+    def value_indices(self):
+        idx = tuple(i for i in range(self.num_params) if i not in set(self.time_indices))
+        return idx, (0,) * len(idx)
 
     @property
     def num_segments(self):
@@ -386,6 +459,7 @@ class SaturatedSpline(AbstractControl):
     lower: jax.Array
     upper: jax.Array
     free_durations: bool = True
+    affine: ClassVar[bool] = True  # the knots and coefficient rows (the clip acts inside local_control)
 
     def __init__(self, segments, degree, lower, upper, free_durations=True):
         _check_segments(segments)
@@ -411,6 +485,21 @@ class SaturatedSpline(AbstractControl):
     @property
     def num_controls(self):
         return int(self.lower.shape[0])
+
+    @property
+    def time_layout(self):
+        return "durations" if self.free_durations else "final_time"
+
+    @property
+    def value_indices(self):
+        """The coefficients c_i^j: u_j = c_i^j at tau_g = i / P for degree >= 1 (within the limits)."""
+        start, P = self._num_times, self.segments
+        idx = tuple(range(start, self.num_params))
+        return idx, tuple(j for j in range(self.num_controls) for _ in range(P + 1))
+
+    @property
+    def limits(self):
+        return self.lower, self.upper
 
     @property
     def _num_times(self):
@@ -486,4 +575,5 @@ __all__ = [
     "PiecewiseParabolic",
     "SaturatedSpline",
     "spline_kernel",
+    "value_bounds",
 ]

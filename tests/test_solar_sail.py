@@ -188,8 +188,14 @@ def test_box():
     assert bool(jnp.all((lower <= a) & (a <= upper)))
     lo, hi = ss.box(ss.spline_control(5, 1, free_durations=False), "venus")
     assert lo.shape == (7,) and float(hi[0]) == ss.TF_BOX["venus"]
-    with pytest.raises(ValueError, match="SaturatedSpline"):
-        ss.box(jt.controls.PiecewiseLinear(3))
+    # any family laid out as durations or one tf plus control values: nodes in the pitch bounds
+    lo, hi = ss.box(jt.controls.PiecewiseLinear(3), "mars")
+    np.testing.assert_allclose(np.asarray(lo), [-math.pi / 2] * 4 + [0.0])
+    np.testing.assert_allclose(np.asarray(hi), [math.pi / 2] * 4 + [ss.TF_BOX["mars"]])
+    with pytest.raises(ValueError, match="free knot times"):
+        ss.box(jt.controls.PiecewiseConstant(3))
+    with pytest.raises(ValueError, match=r"other parameters at \[1, 4\]"):
+        ss.box(jt.controls.PiecewiseParabolic(2, free_times=False))
 
 
 # ----------------------------------------------------------------------------- diagnostics

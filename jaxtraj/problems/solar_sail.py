@@ -299,42 +299,54 @@ def penalty_objective(
 
 
 def box(control: AbstractControl, target: str = "mars", *, h_max=None, tf_max=None, c_lower=None, c_upper=None):
-    """Lower/upper parameter bounds for the metaheuristics over a `SaturatedSpline`.
+    """Lower/upper parameter bounds for the metaheuristics, from the family's declared layout
+    (`time_layout`, `value_indices`, `limits`); the seed's control is a `SaturatedSpline`.
 
     Durations h_k in [0, h_max], by default h_max = 2 tf_max / P with tf_max = `TF_BOX[target]`
     (about 2x the unrestricted minimum time tf*): a segment may last up to 4x its share
     tf* / P of the optimal transfer (the optimal durations are unequal: the optimal Mars pitch
-    rises steeply early on, then varies slowly). With `free_durations=False` the one time
-    entry tf is in [0, tf_max]. Coefficients c_i in the control bounds [-pi/2, pi/2] by
-    default: values beyond them are saturated anyway, so for degree 0/1 the box loses no
-    control; for degree 2/3 it excludes only curves that come back from beyond the bounds.
+    rises steeply early on, then varies slowly). A lone final time (equally spaced knots) is
+    in [0, tf_max]. Control values (spline coefficients, node values) in the family's limits,
+    else the sail's pitch bounds [-pi/2, pi/2]: spline coefficients beyond the limits are
+    saturated anyway, so for degree 0/1 the box loses no control; for degree 2/3 it excludes
+    only curves that come back from beyond the bounds.
 
     **Returns:** `(lower, upper)`, float64 arrays of shape `(control.num_params,)`.
+
+    **Raises:** `ValueError` for a family with free knot times (a box cannot keep them
+    ordered) or with parameters that are neither times nor control values.
     """
-    if not isinstance(control, SaturatedSpline):
-        raise ValueError(f"`control` must be a SaturatedSpline (the seed's control); got {type(control).__name__}.")
+    if not isinstance(control, AbstractControl):
+        raise ValueError(f"`control` must be a jaxtraj control; got {type(control).__name__}.")
+    times = np.asarray(control.time_indices, int)
+    values, channels = (np.asarray(x, int) for x in control.value_indices)
+    other = np.setdiff1d(np.arange(control.num_params), np.concatenate([times, values]))
+    if control.time_layout == "knots" or other.size:
+        raise ValueError(
+            f"`control`: a box needs durations or one final time, and control values for every other "
+            f"parameter (as the seed's SaturatedSpline); {control!r} has "
+            + ("free knot times." if control.time_layout == "knots" else f"other parameters at {other.tolist()}.")
+        )
     if tf_max is None:
         if not isinstance(target, str) or target.lower() not in TF_BOX:
             raise ValueError(f"`target` must be one of {sorted(TF_BOX)}; got {target!r}.")
         tf_max = TF_BOX[target.lower()]
     tf_max = float(tf_max)
-    P = control.segments
+    P = control.num_segments
     if h_max is None:
         h_max = 2.0 * tf_max / P
     h_max = float(h_max)
     if not (math.isfinite(tf_max) and tf_max > 0 and math.isfinite(h_max) and h_max > 0):
         raise ValueError(f"`tf_max` and `h_max` must be finite and > 0; got tf_max={tf_max!r}, h_max={h_max!r}.")
     q = control.num_controls
-    lo_c = np.broadcast_to(np.asarray(control.lower if c_lower is None else c_lower, dtype=np.float64), (q,))
-    hi_c = np.broadcast_to(np.asarray(control.upper if c_upper is None else c_upper, dtype=np.float64), (q,))
+    limits = control.limits or (CONTROL_LOWER, CONTROL_UPPER)
+    lo_c = np.broadcast_to(np.asarray(limits[0] if c_lower is None else c_lower, dtype=np.float64), (q,))
+    hi_c = np.broadcast_to(np.asarray(limits[1] if c_upper is None else c_upper, dtype=np.float64), (q,))
     if np.any(~(lo_c < hi_c)):
         raise ValueError(f"`c_lower` must be < `c_upper`; got {lo_c}, {hi_c}.")
-    if control.free_durations:
-        t_lo, t_hi = np.zeros(P), np.full(P, h_max)
-    else:
-        t_lo, t_hi = np.zeros(1), np.array([tf_max])
-    lower = np.concatenate([t_lo, np.repeat(lo_c, P + 1)])
-    upper = np.concatenate([t_hi, np.repeat(hi_c, P + 1)])
+    lower, upper = np.zeros(control.num_params), np.zeros(control.num_params)
+    upper[times] = h_max if control.time_layout == "durations" else tf_max
+    lower[values], upper[values] = lo_c[channels], hi_c[channels]
     return jnp.asarray(lower), jnp.asarray(upper)
 
 
