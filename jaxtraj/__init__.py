@@ -43,6 +43,7 @@ from ._batch import (
 from ._driver import AbstractSolver as AbstractSolver
 from ._kalman_search import KalmanSearch as KalmanSearch
 from ._kalman_sqp import KalmanSQP as KalmanSQP
+from ._line_search import LineSearch as LineSearch
 from ._problem import Problem as Problem, minimum_time as minimum_time
 from ._sensitivity import (
     Evaluation as Evaluation,
@@ -59,6 +60,7 @@ from ._simulate import (
 from ._solution import History as History, Solution as Solution
 from ._solve import solve as solve
 from ._status import Status as Status, status_name as status_name
+from ._trust_region import TrustRegion as TrustRegion
 from .feedback import (
     ClosedLoopTrajectory as ClosedLoopTrajectory,
     ControlErrors as ControlErrors,

@@ -25,25 +25,12 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   iterations, 12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is
   made positive definite by `convexify` (B = nabla^2 L + c H^T H, which leaves the QP's
   solution unchanged, then lifted eigenvalues where that is not enough).
-* Step rule: backtracking line search on the augmented-Lagrangian merit function
-  phi(a, lambda) = G + lambda^T E + mu/2 |E|^2 over (a + alpha d, lambda + alpha
-  (lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit
-  steps near the solution, so the superlinear rate is not lost to the Maratos effect). The
-  penalty mu rises (Newton steps on the slope, doubled for a margin) until the directional
-  derivative is at most -1/2 d^T B d, but only while E or C violate `ctol`: once they are
-  met (at round-off) the slope hardly depends on mu, and the Newton step asks for an
-  enormous penalty (2e16-2e29 measured on the attitude slew) whose term mu/2 |E|^2 turns
-  E's round-off into merit noise above any decrease, so that the line search fails at the
-  optimum. The penalty is kept for the next direction unless it exceeds `mu_max` (1e8):
-  then the next one starts from 0. Armijo factor `armijo`, relaxed by the merit's round-off
-  (10 eps (1 + |phi|)); a rejected alpha is replaced by the minimizer of the quadratic
-  through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5] alpha. Before that, a
-  rejected *full* step is retried once with a second-order correction d + d_soc, H d_soc =
-  -E(a + d) (the constraints' curvature along d; Nocedal & Wright sec. 15.4), the cheapest
-  candidate in the long curved valleys of these problems: with it (and the monotone
-  penalty of the time) the seven cases took 24, 28, 21, 11, 14, 31, 27 iterations instead of
-  24, 32, 23, 11, 14, 37, 29 (BFGS) and 12, 28, 16, 8, 9, 18, 16 instead of 14, 34, 18, 8,
-  9, 88, 16 (exact Hessian).
+* Globalization (`globalization`, a module with its own settings and state): the merit line
+  search `jt.LineSearch` (default; `jaxtraj._line_search`: augmented-Lagrangian merit,
+  second-order correction, penalty raised only while constraints are violated) or the
+  composite-step trust region `jt.TrustRegion` (`jaxtraj._trust_region`, exact Hessian, no
+  path constraints). This module holds what both share: the QP step by the filter, its
+  multipliers, the second-order correction, the Hessians.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`,
   as in `KalmanSearch` but without its held half gap: the line search shortens the step).
 * Path constraints C(t, x, u) <= 0 (on the integration grid), the appendix-C way: the grid
@@ -69,11 +56,10 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
   and the projected gradient |V G_a| (V: projection on the tangent space of E and of the
   path points with C >= -`path_active`) <= `acceptable_gtol` (1 + |G|). The search runs
   until |V G_a| <= `gtol` (1 + |G|) (the usual outcome: 1e-9, far below the guarantee) or
-  until no measurable progress is left: the line search needs a step below `min_step`, the
-  direction is no descent, the step is negligible against the parameter vector, or
-  `flat_steps` accepted steps in a row decreased the merit by less than its round-off
-  without halving the projected gradient (trust region: the radius or the step
-  collapses). That point is SUCCESS if it meets the guarantee, otherwise STALLED. Why two
+  until no measurable progress is left (each globalization says when: for the line search a
+  step below `min_step`, no descent direction, a negligible step, or `flat_steps` accepted
+  steps in a row within the merit's round-off; for the trust region a collapsed radius or
+  step). That point is SUCCESS if it meets the guarantee, otherwise STALLED. Why two
   levels: the projected gradient's floor is set by the round-off of the sensitivities, not
   by the method, and on the solar-sail and attitude problems it lies at 1e-9..1e-7
   (1 + |G|): a single test at 1e-9 turned SUCCESS into STALLED (or a long wander into
@@ -84,42 +70,19 @@ Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_so
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import lax
 
-from . import _trust_region
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import (
     active_rows,
-    kkt_outcome,
     lagrangian_gradient,
-    least_squares_multipliers,
     path_rows,
     projected_gradient,
 )
+from ._line_search import LineSearch
 from ._sensitivity import Evaluation, evaluate_restricted
-from ._solution import History, Solution
-from ._status import Status
-
-
-def bfgs_update(B, s, y, damping=0.2):
-    """Powell-damped BFGS update of a Hessian approximation B with step s, gradient change y.
-
-    If s^T y < damping s^T B s, y is replaced by r = theta y + (1 - theta) B s with theta
-    chosen so that s^T r = damping s^T B s; then B+ = B - B s s^T B / s^T B s + r r^T / s^T r,
-    positive definite whenever B is (Nocedal & Wright, Procedure 18.2, with damping 0.2).
-    The update is skipped (B returned) for a zero or non-finite step.
-    """
-    Bs = B @ s
-    sBs = s @ Bs
-    sy = s @ y
-    theta = jnp.where(sy >= damping * sBs, 1.0, (1.0 - damping) * sBs / jnp.where(sBs - sy > 0, sBs - sy, 1.0))
-    r = theta * y + (1.0 - theta) * Bs
-    sr = s @ r
-    ok = (sBs > 0) & (sr > 0) & jnp.isfinite(sBs) & jnp.all(jnp.isfinite(r))
-    safe = lambda v: jnp.where(ok, v, 1.0)
-    B1 = B - jnp.outer(Bs, Bs) / safe(sBs) + jnp.outer(r, r) / safe(sr)
-    return jnp.where(ok, 0.5 * (B1 + B1.T), B)
+from ._solution import Solution
+from ._trust_region import TrustRegion
 
 
 def convexify(hessian, H, min_curvature):
@@ -150,29 +113,6 @@ def _covariance(B):
     return 0.5 * (P + P.T)
 
 
-def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
-    """BFGS update with the change of the Lagrangian's gradient (multipliers `lam`)."""
-    return bfgs_update(B, s, lagrangian_gradient(cand, lam) - lagrangian_gradient(ev, lam))
-
-
-def _merit_value(G, E, C, lam, mu):
-    """G + lambda^T E + mu/2 |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term
-    psi = (max(0, nu + mu C)^2 - nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0)."""
-    m = E.shape[0]
-    value = G + lam[:m] @ E + 0.5 * mu * (E @ E)
-    if C is not None:
-        nu = lam[m:]
-        on = nu + mu * C > 0
-        off = jnp.where(nu > 0, -(nu**2) / (2.0 * jnp.where(mu > 0, mu, 1.0)), 0.0)  # nu > 0 here implies mu > 0
-        value = value + jnp.sum(jnp.where(on, nu * C + 0.5 * mu * C**2, off))
-    return value
-
-
-def _merit(ev: Evaluation, lam, mu):
-    rows = path_rows(ev)
-    return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
-
-
 def _follow_maximum(active, C, tol):
     """Near the boundary (C >= -tol), move each active path row (flattened `(N q,)`) to the grid
     neighbour (same component, previous or next point) with the largest C, if that is larger
@@ -186,36 +126,11 @@ def _follow_maximum(active, C, tol):
     return moved.reshape(-1)
 
 
-def _max_path(ev: Evaluation):
-    if ev.C is None:
-        return jnp.asarray(-jnp.inf)
-    return jnp.max(ev.C)
-
-
-class _State(eqx.Module):
-    a: jax.Array
-    ev: Evaluation
-    lam: jax.Array
-    B: jax.Array
-    mu: jax.Array
-    d: jax.Array  # search direction of the line search in progress
-    dlam: jax.Array
-    alpha: jax.Array
-    phi0: jax.Array
-    dphi0: jax.Array
-    searching: jax.Array  # a line search is in progress (alpha < 1 pending)
-    soc: jax.Array  # the pending candidate is a + d + d_soc (second-order correction)
-    d_soc: jax.Array
-    alpha_bt: jax.Array  # the backtracking step to try if the correction is rejected too
-    radius: jax.Array  # step cap |d|_inf
-    num_flat: jax.Array  # accepted steps in a row within the merit's round-off (see `step`)
-    best_gradient: jax.Array  # the smallest projected gradient at an accepted point
-    num_iterations: jax.Array
-    num_integrations: jax.Array
-    num_steps: jax.Array
-    done: jax.Array
-    status: Status
-    history: History
+def _globalization(value):
+    """`KalmanSQP.globalization` from a module or its name (the default settings)."""
+    if isinstance(value, str):
+        return {"line-search": LineSearch, "trust-region": TrustRegion}.get(value, lambda: value)()
+    return value
 
 
 class KalmanSQP(AbstractSolver):
@@ -232,24 +147,13 @@ class KalmanSQP(AbstractSolver):
       it is met.
     - `acceptable_gtol`: what SUCCESS guarantees of the projected gradient (relative to
       1 + |G|, 1e-6) when round-off ends the progress before `gtol` is met (module docs).
-    - `flat_steps`: accepted steps in a row within the merit's round-off (and without
-      halving the projected gradient) that count as no progress (10).
     - `a_t`: knot approach ratio of the appendix-C ordering observations (as KalmanSearch).
-    - `armijo`: sufficient-decrease factor of the merit line search.
-    - `min_step`: smallest line-search step before STALLED.
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
-    - `mu_max`: a merit penalty above this is not carried over to the next direction (see
-      the module docs).
-    - `globalization`: `"line-search"` (the merit line search described in the module docs) or
-      `"trust-region"` (a composite-step trust region, `hessian="exact"` and problems without
-      path constraints only: see `jaxtraj._trust_region`; fewer iterations on every
-      Earth-Mars case).
-    - `radius`: line search: initial cap on a step's largest component |d_i| (parameter
-      units; default 0.5), doubled after every full step it limited, reset to the accepted
-      length after a shortened one. Trust region: initial radius of |d|_2 (default 1.0).
-    - `zeta`, `gap_floor`, `eta` (trust region): the normal step's share of the radius (0.8);
-      the fraction of a knot gap one step must leave (0.5); the least ratio of actual to
-      predicted merit decrease that accepts a step (1e-4).
+    - `globalization`: `jt.LineSearch()` (default; the merit line search of
+      `jaxtraj._line_search`, with its own settings) or `jt.TrustRegion()` (a composite-step
+      trust region, `hessian="exact"` and problems without path constraints only: see
+      `jaxtraj._trust_region`; fewer iterations on every Earth-Mars case). The strings
+      `"line-search"` and `"trust-region"` stand for their defaults.
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
       constraints are met to about this fraction of the innovation).
     - `path_active`: path points with C >= -`path_active` count as active constraints in
@@ -264,20 +168,12 @@ class KalmanSQP(AbstractSolver):
     ctol: float = 1e-10
     gtol: float = 1e-9
     acceptable_gtol: float = 1e-6
-    flat_steps: int = 10
     a_t: float = 10.0
-    armijo: float = 1e-4
-    min_step: float = 1e-8
     min_curvature: float = 1e-8
     r_rel: float = 1e-12
     exact_iterations: int = 3
     path_active: float = 1e-6
-    globalization: str = "line-search"
-    radius: float | None = None
-    zeta: float = 0.8
-    gap_floor: float = 0.5
-    eta: float = 1e-4
-    mu_max: float = 1e8
+    globalization: LineSearch | TrustRegion = eqx.field(default="line-search", converter=_globalization)
     path_dependence: float = PATH_DEPENDENCE
     method: str = "forward"
 
@@ -286,29 +182,22 @@ class KalmanSQP(AbstractSolver):
             raise ValueError(f"KalmanSQP: `hessian` must be 'bfgs' or 'exact'; got {self.hessian!r}.")
         if self.method not in ("forward", "unit"):
             raise ValueError(f"KalmanSQP: `method` must be 'forward' or 'unit'; got {self.method!r}.")
-        if self.globalization not in ("line-search", "trust-region"):
+        if not isinstance(self.globalization, LineSearch | TrustRegion):
             raise ValueError(
-                f"KalmanSQP: `globalization` must be 'line-search' or 'trust-region'; got {self.globalization!r}."
+                "KalmanSQP: `globalization` must be jt.LineSearch(), jt.TrustRegion(), 'line-search' or "
+                f"'trust-region'; got {self.globalization!r}."
             )
-        if self.globalization == "trust-region" and self.hessian != "exact":
-            raise ValueError("KalmanSQP: `globalization='trust-region'` needs `hessian='exact'`.")
+        if isinstance(self.globalization, TrustRegion) and self.hessian != "exact":
+            raise ValueError("KalmanSQP: the trust region (`globalization`) needs `hessian='exact'`.")
         if self.hessian == "exact" and self.method != "forward":
             raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
         checks = {
             "ctol": self.ctol > 0,
             "gtol": self.gtol > 0,
             "acceptable_gtol": self.acceptable_gtol >= self.gtol,
-            "flat_steps": isinstance(self.flat_steps, int) and self.flat_steps >= 1,
             "a_t": self.a_t >= 1,
-            "armijo": 0 < self.armijo < 0.5,
-            "min_step": 0 < self.min_step < 1,
             "min_curvature": 0 < self.min_curvature < 1,
             "r_rel": 0 < self.r_rel < 1,
-            "radius": self.radius is None or self.radius > 0,
-            "zeta": 0 < self.zeta < 1,
-            "gap_floor": 0 < self.gap_floor < 1,
-            "eta": 0 < self.eta < 0.25,
-            "mu_max": self.mu_max > 0,
             "path_dependence": 0 < self.path_dependence < 1,
             "exact_iterations": isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
         }
@@ -316,27 +205,21 @@ class KalmanSQP(AbstractSolver):
             if not ok:
                 raise ValueError(f"KalmanSQP: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
 
-    @property
-    def initial_radius(self):
-        if self.radius is not None:
-            return self.radius
-        return 1.0 if self.globalization == "trust-region" else 0.5
-
     # ------------------------------------------------------------------ evaluations
 
-    def _evaluate(self, problem, control, a, simulator, lam):
+    def evaluate(self, problem, control, a, simulator, lam):
         """The restricted problem at `a`, and (hessian="exact") the convexified Hessian of
         the Lagrangian with multipliers `lam`, from one integration."""
         if self.hessian == "bfgs":
-            return self._restricted(problem, control, a, simulator), None
-        return self._hessian(problem, control, a, simulator, lam)
+            return self.restricted(problem, control, a, simulator), None
+        return self.exact_hessian(problem, control, a, simulator, lam)
 
-    def _restricted(self, problem, control, a, simulator):
+    def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
 
-    def _hessian(self, problem, control, a, simulator, lam):
+    def exact_hessian(self, problem, control, a, simulator, lam):
         def grad_lagrangian(a):
-            ev = self._restricted(problem, control, a, simulator)
+            ev = self.restricted(problem, control, a, simulator)
             return lagrangian_gradient(ev, lam), ev
 
         hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
@@ -345,7 +228,7 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ the QP step
 
-    def _direction(self, ev: Evaluation, B, lam, knots, dknots):
+    def direction(self, ev: Evaluation, B, lam, knots, dknots):
         """The SQP step by the sequential filter: prior -P G_a with P = B^-1, observations
         H d = -E with noise `r_rel` h P h^T; then the appendix-C knot ordering."""
         P = _covariance(B)
@@ -412,7 +295,7 @@ class KalmanSQP(AbstractSolver):
             lam_qp = lam_qp.at[m:].set(jnp.where(active, jnp.maximum(lam_qp[m:], 0.0), 0.0))
         return d, lam_qp
 
-    def _release_inactive(self, ev: Evaluation, lam, lam_qp):
+    def release_inactive(self, ev: Evaluation, lam, lam_qp):
         """`lam` with the multipliers of the path points that are strictly inactive (C <
         -`path_active`) and left out of the QP's active set set to 0 (complementarity). A
         multiplier kept there from a shortened step ((1 - alpha) of its old value) adds
@@ -431,7 +314,7 @@ class KalmanSQP(AbstractSolver):
         A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], path_rows(ev)[1], 0.0)])
         return jnp.linalg.lstsq(A.T, -(ev.G_a + B @ d))[0]
 
-    def _correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
+    def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
         """Second-order correction of a full step d: the smallest step (metric B) with
         H d_soc = -E(a + d), H at the current point, so that d + d_soc absorbs the
         constraints' curvature along d (Nocedal & Wright sec. 15.4); knot order kept."""
@@ -442,228 +325,23 @@ class KalmanSQP(AbstractSolver):
         total, _ = keep_knots_ordered(d + dc, P, knots, dknots, self.a_t)
         return jnp.where(jnp.all(jnp.isfinite(total)), total - d, 0.0)
 
-    def _line_search_start(self, ev, lam, mu, B, d, lam_qp):
-        """Penalty update and the merit's value and slope at alpha = 0."""
-        dlam = lam_qp - lam
-        rows = path_rows(ev)
-        C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
-        Gd, Hd = ev.G_a @ d, ev.H @ d
-
-        def slope(mu):
-            # d/dalpha of the merit of the linearized constraints along (d, dlam)
-            def phi(alpha):
-                C_alpha = None if C is None else C + alpha * Cd
-                return _merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu)
-
-            return jax.jvp(phi, (jnp.zeros_like(mu),), (jnp.ones_like(mu),))[1]
-
-        # The penalty rises until the slope is at most -1/2 d^T B d, where raising it lowers
-        # the slope (the slope is affine in mu for the terminal part, piecewise for the PHR
-        # terms): Newton steps on slope(mu) = target, doubled for a margin.
-        target = -0.5 * (d @ B @ d)
-        # Only a violation above `ctol` raises it: with E and C met (at round-off), the slope
-        # hardly depends on mu, and the Newton step would ask for an enormous penalty whose
-        # term mu/2 |E|^2 turns E's round-off into merit noise above any decrease.
-        infeasible = jnp.max(jnp.abs(ev.E)) > self.ctol
-        if C is not None:
-            infeasible = infeasible | (jnp.max(C) > self.ctol)
-
-        def raise_mu(_, mu):
-            value, c1 = jax.jvp(slope, (mu,), (jnp.ones_like(mu),))
-            needed = mu + (value - target) / jnp.where(c1 < 0, -c1, 1.0)
-            return jnp.where((value > target) & (c1 < 0) & infeasible, jnp.maximum(2.0 * needed, mu), mu)
-
-        mu = lax.fori_loop(0, 1 if rows is None else 4, raise_mu, mu)
-        return dlam, mu, _merit(ev, lam, mu), slope(mu)
-
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
-        if self.globalization == "trust-region":
-            return _trust_region.init(self, problem, control, a0, simulator, max_steps)
-        lam = least_squares_multipliers(self._restricted(problem, control, a0, simulator), self.path_active)
-        ev, B = self._hessian(problem, control, a0, simulator, lam)
-        f = jnp.float64
-        hist = History.empty(max_steps)
-        ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
-        zero = jnp.zeros_like(a0)
-        return _State(
-            a=a0,
-            ev=ev,
-            lam=jnp.where(jnp.isfinite(lam), lam, 0.0),
-            B=B,
-            mu=jnp.asarray(0.0, f),
-            d=zero,
-            dlam=jnp.zeros_like(lam),
-            alpha=jnp.asarray(1.0, f),
-            phi0=jnp.asarray(0.0, f),
-            dphi0=jnp.asarray(0.0, f),
-            searching=jnp.array(False),
-            soc=jnp.array(False),
-            d_soc=zero,
-            alpha_bt=jnp.asarray(1.0, f),
-            radius=jnp.asarray(self.initial_radius, f),
-            num_flat=jnp.array(0, jnp.int32),
-            best_gradient=jnp.asarray(jnp.inf, f),
-            num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(2, jnp.int32),
-            num_steps=jnp.array(0, jnp.int32),
-            done=~ok0,
-            status=Status.where(
-                ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
-            ),
-            history=hist,
-        )
+        return self.globalization.init(self, problem, control, a0, simulator, max_steps)
 
-    def step(self, problem, control, simulator, state: _State):
-        if self.globalization == "trust-region":
-            return _trust_region.step(self, problem, control, simulator, state)
-        ev, a, lam = state.ev, state.a, state.lam
-        # A fresh direction (cheap: no integration); kept only when no search is pending.
-        knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
+    def step(self, problem, control, simulator, state):
+        return self.globalization.step(self, problem, control, simulator, state)
 
-        def start(B):
-            d, lam_qp = self._direction(ev, B, lam, knots, dknots)
-            d_max = jnp.max(jnp.abs(d))
-            capped = d_max > state.radius
-            d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
-            # the penalty carries over unless it ran past `mu_max` (see the module docs)
-            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
-            base = self._release_inactive(ev, lam, lam_qp)
-            return (d, base, *self._line_search_start(ev, base, mu, B, d, lam_qp))
-
-        # If B's step is no descent direction for the merit (B degenerated, or the knot
-        # ordering bent the step), restart from a scaled identity. Both are cheap (no
-        # integration), so both are computed: no branch under vmap.
-        B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
-        from_B, from_reset = start(state.B), start(B_reset)
-        reset = ~(from_B[5] < 0)
-        d_new, lam_new, dlam_new, mu_new, phi0_new, dphi0_new = jax.tree.map(
-            lambda r, b: jnp.where(reset, r, b), from_reset, from_B
-        )
-        fresh = ~state.searching
-        B = jnp.where(fresh & reset, B_reset, state.B)
-        pick = lambda new, old: jnp.where(fresh, new, old)
-        d, dlam, lam = pick(d_new, state.d), pick(dlam_new, state.dlam), pick(lam_new, lam)
-        mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
-        alpha = jnp.where(fresh, 1.0, state.alpha)
-
-        # one integration: the candidate
-        soc = state.soc
-        step_taken = alpha * d + jnp.where(soc, state.d_soc, 0.0)
-        lam_c = lam + alpha * dlam
-        if self.hessian == "bfgs" and self.exact_iterations > 0:
-            # exact Hessians for the first `exact_iterations` iterations, then BFGS
-            early = state.num_iterations < self.exact_iterations
-            cand, B_exact = lax.cond(
-                early,
-                lambda: self._hessian(problem, control, a + step_taken, simulator, lam_c),
-                lambda: (self._restricted(problem, control, a + step_taken, simulator), B),
-            )
-        else:
-            cand, B_exact = self._evaluate(problem, control, a + step_taken, simulator, lam_c)
-            early = True
-        phi = _merit(cand, lam_c, mu)
-        finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
-        descent = dphi0 < 0
-        # Armijo, relaxed by the merit's round-off (10 eps |phi|): near the solution the
-        # predicted decrease falls below what float64 can resolve.
-        slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))
-        accept = finite & descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)
-
-        # accepted: Hessian update at the new point
-        if B_exact is None:
-            B_acc = _bfgs_step(B, step_taken, cand, ev, lam_c)
-        elif self.hessian == "bfgs":
-            B_acc = jnp.where(early, B_exact, _bfgs_step(B, step_taken, cand, ev, lam_c))
-        else:
-            B_acc = B_exact
-        # rejected: a shorter step (quadratic interpolation of the merit, safeguarded)
-        curv = (phi - phi0 - dphi0 * alpha) / alpha**2
-        alpha_q = jnp.where(curv > 0, -dphi0 / (2.0 * jnp.where(curv > 0, curv, 1.0)), 0.1 * alpha)
-        alpha_q = jnp.where(finite, jnp.clip(alpha_q, 0.1 * alpha, 0.5 * alpha), 0.1 * alpha)
-        # A rejected full step is first retried with a second-order correction (the
-        # constraints' curvature: the candidate's E observed from the same point), and the
-        # backtracking step is kept for the case that the correction fails too.
-        try_soc = fresh & ~accept & finite & descent
-        alpha_next = jnp.where(soc, state.alpha_bt, jnp.where(try_soc, 1.0, alpha_q))
-        d_soc = self._correction(ev, B, cand.E, knots, dknots, d)
-
-        new_a = jnp.where(accept, a + step_taken, a)
-        new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
-        new_lam = jnp.where(accept, lam_c, lam)
-        maxE = jnp.max(jnp.abs(new_ev.E))
-        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, self.path_active))
-        feasible = (maxE <= self.ctol) & (_max_path(new_ev) <= self.ctol)
-        # No measurable progress is left: the line search failed, the direction is no
-        # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
-        # within the merit's round-off without halving the projected gradient.
-        improved = pg < 0.5 * state.best_gradient
-        unresolved = accept & (phi > phi0 - slack) & ~improved
-        flat = jnp.where(accept, jnp.where(unresolved, state.num_flat + 1, 0), state.num_flat)
-        negligible = jnp.linalg.norm(step_taken) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
-        no_progress = (
-            (~accept & ~try_soc & (alpha_next < self.min_step))
-            | ~descent
-            | (accept & negligible)
-            | (flat >= self.flat_steps)
-        )
-        converged, stalled = kkt_outcome(feasible, pg, new_ev.G, self.gtol, self.acceptable_gtol, no_progress)
-        done = converged | stalled
-
-        i = state.num_steps
-        history = state.history.record(
-            i,
-            objective=new_ev.G,
-            max_constraint_error=maxE,
-            rho=alpha,
-            phase=jnp.where(fresh, 1, jnp.where(soc, 3, 2)).astype(jnp.int32),
-            accepted=accept,
-            constraint_tolerance=self.ctol,
-        )
-        return _State(
-            a=new_a,
-            ev=new_ev,
-            lam=new_lam,
-            B=jnp.where(accept, B_acc, B),
-            mu=mu,
-            d=d,
-            dlam=dlam,
-            alpha=jnp.where(accept, 1.0, alpha_next),
-            phi0=phi0,
-            dphi0=dphi0,
-            searching=~accept,
-            soc=~accept & try_soc,
-            d_soc=d_soc,
-            alpha_bt=jnp.where(try_soc, alpha_q, state.alpha_bt),
-            radius=jnp.where(
-                accept,
-                jnp.where(alpha < 1.0, alpha * jnp.max(jnp.abs(d)), jnp.minimum(2.0 * state.radius, 1e3)),
-                state.radius,
-            ),
-            num_flat=flat.astype(jnp.int32),
-            best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
-            num_iterations=state.num_iterations + accept.astype(jnp.int32),
-            num_integrations=state.num_integrations + 1,
-            num_steps=i + 1,
-            done=done,
-            status=Status.where(converged, Status.SUCCESS, Status.STALLED),
-            history=history,
-        )
-
-    def progress(self, state: _State):
-        if self.globalization == "trust-region":
-            steps = {"radius": state.radius, "nu": state.nu}
-        else:
-            steps = {"alpha": state.alpha, "mu": state.mu}
+    def progress(self, state):
         return {
             "iterations": state.num_iterations,
             "objective": state.ev.G,
             "max|E|": jnp.max(jnp.abs(state.ev.E)),
-            **steps,
+            **self.globalization.progress(state),
         }
 
-    def postprocess(self, problem, control, simulator, state: _State) -> Solution:
+    def postprocess(self, problem, control, simulator, state) -> Solution:
         return Solution.from_evaluation(
             state.ev,
             state.a,

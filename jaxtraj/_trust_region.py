@@ -1,5 +1,5 @@
 """KalmanSQP's trust-region globalization (`KalmanSQP(hessian="exact",
-globalization="trust-region")`): a Byrd-Omojokun composite-step SQP with the exact Hessian of
+globalization=jt.TrustRegion())`): a Byrd-Omojokun composite-step SQP with the exact Hessian of
 the Lagrangian (Nocedal & Wright sec. 18.5), its constraint parts computed by the sequential
 Kalman update.
 
@@ -195,10 +195,10 @@ def _merit(ev: Evaluation, lam, nu):
     return ev.G + lam @ ev.E + 0.5 * nu * (ev.E @ ev.E)
 
 
-def init(solver, problem, control, a0, simulator, max_steps):
+def _init(tr, sqp, problem, control, a0, simulator, max_steps):
     if problem.path is not None:
         raise ValueError(
-            "KalmanSQP: `globalization='trust-region'` does not handle path constraints; use 'line-search'."
+            "KalmanSQP: the trust region (`globalization`) does not handle path constraints; use jt.LineSearch()."
         )
     ev = evaluate_restricted(problem, control, a0, simulator, "forward")
     lam = _multipliers(ev)
@@ -211,7 +211,7 @@ def init(solver, problem, control, a0, simulator, max_steps):
         ev=ev,
         lam=lam,
         W=W,
-        radius=jnp.asarray(solver.initial_radius, f),
+        radius=jnp.asarray(tr.radius, f),
         nu=jnp.asarray(0.0, f),
         d=zero,
         d_soc=zero,
@@ -227,13 +227,13 @@ def init(solver, problem, control, a0, simulator, max_steps):
     )
 
 
-def step(solver, problem, control, simulator, state: TRState):
+def _step(tr, sqp, problem, control, simulator, state: TRState):
     ev, a, lam, W, nu = state.ev, state.a, state.lam, state.W, state.nu
     knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
     fresh = ~state.soc
 
     # a new step (cheap: no integration); used unless a correction is pending
-    d_new = trust_region_step(ev, W, state.radius, knots, dknots, solver.zeta, solver.gap_floor)
+    d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor)
     Hd = ev.H @ d_new
     model = (ev.G_a + ev.H.T @ lam) @ d_new + 0.5 * d_new @ W @ d_new  # change of the Lagrangian's model
     linear = 0.5 * (ev.E @ ev.E - (ev.E + Hd) @ (ev.E + Hd))  # decrease of |E|^2 / 2, linearized
@@ -255,7 +255,7 @@ def step(solver, problem, control, simulator, state: TRState):
     finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi) & ordered
     slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))  # the merit's round-off
     ared = phi0 - phi
-    accept = finite & (ared + slack >= solver.eta * pred)
+    accept = finite & (ared + slack >= tr.eta * pred)
     ratio = ared / jnp.maximum(pred, 1e-300)
 
     # rejected full step: retry once with the second-order correction
@@ -278,9 +278,7 @@ def step(solver, problem, control, simulator, state: TRState):
     pg = projected_gradient(new_ev.G_a, new_ev.H)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny))  # NaN radius too
-    converged, stalled = kkt_outcome(
-        maxE <= solver.ctol, pg, new_ev.G, solver.gtol, solver.acceptable_gtol, no_progress
-    )
+    converged, stalled = kkt_outcome(maxE <= sqp.ctol, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
     # first-order integration alone (in a single solve; under vmap both branches run).
     hessian = accept & ~converged & ~stalled
@@ -297,7 +295,7 @@ def step(solver, problem, control, simulator, state: TRState):
         rho=state.radius,
         phase=jnp.where(fresh, 1, 3).astype(jnp.int32),
         accepted=accept,
-        constraint_tolerance=solver.ctol,
+        constraint_tolerance=sqp.ctol,
     )
     return TRState(
         a=new_a,
@@ -318,3 +316,38 @@ def step(solver, problem, control, simulator, state: TRState):
         status=Status.where(converged, Status.SUCCESS, Status.STALLED),
         history=history,
     )
+
+
+class TrustRegion(eqx.Module):
+    """KalmanSQP's composite-step trust region (module docs). Fields:
+
+    - `radius`: initial radius of |d|_2 (parameter units, 1.0).
+    - `zeta`: the normal step's share of the radius (0.8).
+    - `gap_floor`: the fraction of a knot gap one step must leave (0.5).
+    - `eta`: the least ratio of actual to predicted merit decrease that accepts a step (1e-4).
+    """
+
+    radius: float = 1.0
+    zeta: float = 0.8
+    gap_floor: float = 0.5
+    eta: float = 1e-4
+
+    def __check_init__(self):
+        checks = {
+            "radius": self.radius > 0,
+            "zeta": 0 < self.zeta < 1,
+            "gap_floor": 0 < self.gap_floor < 1,
+            "eta": 0 < self.eta < 0.25,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"TrustRegion: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+
+    def init(self, sqp, problem, control, a0, simulator, max_steps):
+        return _init(self, sqp, problem, control, a0, simulator, max_steps)
+
+    def step(self, sqp, problem, control, simulator, state: TRState):
+        return _step(self, sqp, problem, control, simulator, state)
+
+    def progress(self, state: TRState):
+        return {"radius": state.radius, "nu": state.nu}

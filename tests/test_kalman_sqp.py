@@ -11,8 +11,9 @@ from helpers import ROUNDOFF_EPS, perturbed_starts
 from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
-from jaxtraj._kalman_sqp import _merit, bfgs_update, convexify
+from jaxtraj._kalman_sqp import convexify
 from jaxtraj._kkt import kkt_outcome, lagrangian_gradient
+from jaxtraj._line_search import _merit, bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
 from jaxtraj._trust_region import lagrangian_hessian, min_norm_step, subproblem, trust_region_step
 from jaxtraj.baselines import solve_slsqp
@@ -79,7 +80,7 @@ def test_filter_step_is_the_qp_solution(p, m):
     """The sequential update with prior -B^-1 G_a and observations H d = -E returns the
     equality-constrained QP's solution and multipliers (batch KKT system as reference),
     for Hessians with condition numbers up to 1e6."""
-    direction = eqx.filter_jit(jt.KalmanSQP()._direction)
+    direction = eqx.filter_jit(jt.KalmanSQP().direction)
     for seed in range(6):
         rng = np.random.default_rng(seed)
         _, B = _spd(rng, p, 1e-3, 1e3)
@@ -130,9 +131,9 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     solver, sim = jt.KalmanSQP(), jt.RK4(50)
     ev = evaluate_restricted(prob, ctrl, a0, sim)
     lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-    _, B = solver._hessian(prob, ctrl, a0, sim, lam)
-    d, lam_qp = solver._direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
-    dlam, mu, phi0, slope = solver._line_search_start(ev, lam, 0.0, B, d, lam_qp)
+    _, B = solver.exact_hessian(prob, ctrl, a0, sim, lam)
+    d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
+    dlam, mu, phi0, slope = solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp)
     assert float(mu) > 0
     phi = lambda t: _merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)
     h = 1e-5
@@ -354,21 +355,32 @@ def test_batch_and_bad_start():
         {"method": "fd"},
         {"hessian": "exact", "method": "unit"},
         {"ctol": 0.0},
-        {"armijo": 0.7},
-        {"radius": -1.0},
         {"exact_iterations": -1},
         {"exact_iterations": 1.5},
         {"globalization": "dogleg"},
         {"globalization": "trust-region"},
-        {"hessian": "exact", "globalization": "trust-region", "zeta": 1.0},
         {"acceptable_gtol": 1e-10},
-        {"flat_steps": 0},
-        {"flat_steps": 2.0},
     ],
 )
 def test_bad_settings(kwargs):
     with pytest.raises(ValueError, match="KalmanSQP"):
         jt.KalmanSQP(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: jt.LineSearch(armijo=0.7),
+        lambda: jt.LineSearch(radius=-1.0),
+        lambda: jt.LineSearch(flat_steps=0),
+        lambda: jt.LineSearch(flat_steps=2.0),
+        lambda: jt.TrustRegion(zeta=1.0),
+        lambda: jt.TrustRegion(eta=0.5),
+    ],
+)
+def test_bad_globalization_settings(make):
+    with pytest.raises(ValueError, match=r"LineSearch|TrustRegion"):
+        make()
 
 
 def test_kkt_outcome_levels():

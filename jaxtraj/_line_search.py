@@ -1,0 +1,361 @@
+"""KalmanSQP's merit line search (`KalmanSQP(globalization=jt.LineSearch())`, the default).
+
+Backtracking on the augmented-Lagrangian merit function phi(a, lambda) = G + lambda^T E +
+mu/2 |E|^2 (+ the PHR terms of the path constraints) over (a + alpha d, lambda + alpha
+(lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit steps
+near the solution, so the superlinear rate is not lost to the Maratos effect).
+
+* Penalty. mu rises (Newton steps on the slope, doubled for a margin) until the directional
+  derivative is at most -1/2 d^T B d, but only while E or C violate `ctol`: once they are met
+  (at round-off) the slope hardly depends on mu, and the Newton step would ask for an enormous
+  penalty whose term mu/2 |E|^2 turns E's round-off into merit noise above any decrease. The
+  penalty is kept for the next direction unless it exceeds `mu_max`; then the next one starts
+  from 0.
+* Steps. The step is capped at `radius` in its largest component (doubled after every full
+  step it limited, reset to the accepted length after a shortened one). Armijo factor
+  `armijo`, relaxed by the merit's round-off (10 eps (1 + |phi|)); a rejected alpha is replaced
+  by the minimizer of the quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5]
+  alpha. Before that, a rejected *full* step is retried once with a second-order correction
+  d + d_soc, H d_soc = -E(a + d) (the constraints' curvature along d; Nocedal & Wright
+  sec. 15.4). If B's step is no descent direction for the merit, the direction is recomputed
+  from a scaled identity.
+* Hessian. With `hessian="bfgs"`, Powell-damped BFGS updates of the Lagrangian's gradient
+  change after the first `exact_iterations` iterations (exact Hessians before).
+* No measurable progress: a step below `min_step`, no descent direction, a negligible step, or
+  `flat_steps` accepted steps in a row within the merit's round-off without halving the
+  projected gradient. The solver's termination rule (`jaxtraj._kkt.kkt_outcome`) then decides
+  between SUCCESS and STALLED.
+
+One `step` = one candidate integration, branch-free, so a batch under `vmap` runs the same
+work for every start.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from ._kkt import (
+    active_rows,
+    kkt_outcome,
+    lagrangian_gradient,
+    least_squares_multipliers,
+    path_rows,
+    projected_gradient,
+)
+from ._sensitivity import Evaluation
+from ._solution import History
+from ._status import Status
+
+
+def bfgs_update(B, s, y, damping=0.2):
+    """Powell-damped BFGS update of a Hessian approximation B with step s, gradient change y.
+
+    If s^T y < damping s^T B s, y is replaced by r = theta y + (1 - theta) B s with theta
+    chosen so that s^T r = damping s^T B s; then B+ = B - B s s^T B / s^T B s + r r^T / s^T r,
+    positive definite whenever B is (Nocedal & Wright, Procedure 18.2, with damping 0.2).
+    The update is skipped (B returned) for a zero or non-finite step.
+    """
+    Bs = B @ s
+    sBs = s @ Bs
+    sy = s @ y
+    theta = jnp.where(sy >= damping * sBs, 1.0, (1.0 - damping) * sBs / jnp.where(sBs - sy > 0, sBs - sy, 1.0))
+    r = theta * y + (1.0 - theta) * Bs
+    sr = s @ r
+    ok = (sBs > 0) & (sr > 0) & jnp.isfinite(sBs) & jnp.all(jnp.isfinite(r))
+    safe = lambda v: jnp.where(ok, v, 1.0)
+    B1 = B - jnp.outer(Bs, Bs) / safe(sBs) + jnp.outer(r, r) / safe(sr)
+    return jnp.where(ok, 0.5 * (B1 + B1.T), B)
+
+
+def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
+    """BFGS update with the change of the Lagrangian's gradient (multipliers `lam`)."""
+    return bfgs_update(B, s, lagrangian_gradient(cand, lam) - lagrangian_gradient(ev, lam))
+
+
+def _merit_value(G, E, C, lam, mu):
+    """G + lambda^T E + mu/2 |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term
+    psi = (max(0, nu + mu C)^2 - nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0)."""
+    m = E.shape[0]
+    value = G + lam[:m] @ E + 0.5 * mu * (E @ E)
+    if C is not None:
+        nu = lam[m:]
+        on = nu + mu * C > 0
+        off = jnp.where(nu > 0, -(nu**2) / (2.0 * jnp.where(mu > 0, mu, 1.0)), 0.0)  # nu > 0 here implies mu > 0
+        value = value + jnp.sum(jnp.where(on, nu * C + 0.5 * mu * C**2, off))
+    return value
+
+
+def _merit(ev: Evaluation, lam, mu):
+    rows = path_rows(ev)
+    return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
+
+
+def _max_path(ev: Evaluation):
+    if ev.C is None:
+        return jnp.asarray(-jnp.inf)
+    return jnp.max(ev.C)
+
+
+class LineSearchState(eqx.Module):
+    """KalmanSQP's state with the line search."""
+
+    a: jax.Array
+    ev: Evaluation
+    lam: jax.Array
+    B: jax.Array
+    mu: jax.Array
+    d: jax.Array  # search direction of the line search in progress
+    dlam: jax.Array
+    alpha: jax.Array
+    phi0: jax.Array
+    dphi0: jax.Array
+    searching: jax.Array  # a line search is in progress (alpha < 1 pending)
+    soc: jax.Array  # the pending candidate is a + d + d_soc (second-order correction)
+    d_soc: jax.Array
+    alpha_bt: jax.Array  # the backtracking step to try if the correction is rejected too
+    radius: jax.Array  # step cap |d|_inf
+    num_flat: jax.Array  # accepted steps in a row within the merit's round-off (see `step`)
+    best_gradient: jax.Array  # the smallest projected gradient at an accepted point
+    num_iterations: jax.Array
+    num_integrations: jax.Array
+    num_steps: jax.Array
+    done: jax.Array
+    status: Status
+    history: History
+
+
+class LineSearch(eqx.Module):
+    """KalmanSQP's merit line search (module docs). Fields:
+
+    - `radius`: initial cap on a step's largest component |d_i| (parameter units, 0.5).
+    - `armijo`: sufficient-decrease factor (1e-4).
+    - `min_step`: smallest step before no progress is declared (1e-8).
+    - `mu_max`: a merit penalty above this is not carried over to the next direction (1e8).
+    - `flat_steps`: accepted steps in a row within the merit's round-off (and without halving
+      the projected gradient) that count as no progress (10).
+    """
+
+    radius: float = 0.5
+    armijo: float = 1e-4
+    min_step: float = 1e-8
+    mu_max: float = 1e8
+    flat_steps: int = 10
+
+    def __check_init__(self):
+        checks = {
+            "radius": self.radius > 0,
+            "armijo": 0 < self.armijo < 0.5,
+            "min_step": 0 < self.min_step < 1,
+            "mu_max": self.mu_max > 0,
+            "flat_steps": isinstance(self.flat_steps, int) and self.flat_steps >= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"LineSearch: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+
+    def start(self, sqp, ev, lam, mu, B, d, lam_qp):
+        """Penalty update and the merit's value and slope at alpha = 0."""
+        dlam = lam_qp - lam
+        rows = path_rows(ev)
+        C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
+        Gd, Hd = ev.G_a @ d, ev.H @ d
+
+        def slope(mu):
+            # d/dalpha of the merit of the linearized constraints along (d, dlam)
+            def phi(alpha):
+                C_alpha = None if C is None else C + alpha * Cd
+                return _merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu)
+
+            return jax.jvp(phi, (jnp.zeros_like(mu),), (jnp.ones_like(mu),))[1]
+
+        # The penalty rises until the slope is at most -1/2 d^T B d, where raising it lowers
+        # the slope (the slope is affine in mu for the terminal part, piecewise for the PHR
+        # terms): Newton steps on slope(mu) = target, doubled for a margin.
+        target = -0.5 * (d @ B @ d)
+        # Only a violation above `ctol` raises it: with E and C met (at round-off), the slope
+        # hardly depends on mu, and the Newton step would ask for an enormous penalty whose
+        # term mu/2 |E|^2 turns E's round-off into merit noise above any decrease.
+        infeasible = jnp.max(jnp.abs(ev.E)) > sqp.ctol
+        if C is not None:
+            infeasible = infeasible | (jnp.max(C) > sqp.ctol)
+
+        def raise_mu(_, mu):
+            value, c1 = jax.jvp(slope, (mu,), (jnp.ones_like(mu),))
+            needed = mu + (value - target) / jnp.where(c1 < 0, -c1, 1.0)
+            return jnp.where((value > target) & (c1 < 0) & infeasible, jnp.maximum(2.0 * needed, mu), mu)
+
+        mu = lax.fori_loop(0, 1 if rows is None else 4, raise_mu, mu)
+        return dlam, mu, _merit(ev, lam, mu), slope(mu)
+
+    def init(self, sqp, problem, control, a0, simulator, max_steps):
+        lam = least_squares_multipliers(sqp.restricted(problem, control, a0, simulator), sqp.path_active)
+        ev, B = sqp.exact_hessian(problem, control, a0, simulator, lam)
+        f = jnp.float64
+        hist = History.empty(max_steps)
+        ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
+        zero = jnp.zeros_like(a0)
+        return LineSearchState(
+            a=a0,
+            ev=ev,
+            lam=jnp.where(jnp.isfinite(lam), lam, 0.0),
+            B=B,
+            mu=jnp.asarray(0.0, f),
+            d=zero,
+            dlam=jnp.zeros_like(lam),
+            alpha=jnp.asarray(1.0, f),
+            phi0=jnp.asarray(0.0, f),
+            dphi0=jnp.asarray(0.0, f),
+            searching=jnp.array(False),
+            soc=jnp.array(False),
+            d_soc=zero,
+            alpha_bt=jnp.asarray(1.0, f),
+            radius=jnp.asarray(self.radius, f),
+            num_flat=jnp.array(0, jnp.int32),
+            best_gradient=jnp.asarray(jnp.inf, f),
+            num_iterations=jnp.array(0, jnp.int32),
+            num_integrations=jnp.array(2, jnp.int32),
+            num_steps=jnp.array(0, jnp.int32),
+            done=~ok0,
+            status=Status.where(
+                ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
+            ),
+            history=hist,
+        )
+
+    def step(self, sqp, problem, control, simulator, state: LineSearchState):
+        ev, a, lam = state.ev, state.a, state.lam
+        # A fresh direction (cheap: no integration); kept only when no search is pending.
+        knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
+
+        def start(B):
+            d, lam_qp = sqp.direction(ev, B, lam, knots, dknots)
+            d_max = jnp.max(jnp.abs(d))
+            capped = d_max > state.radius
+            d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
+            # the penalty carries over unless it ran past `mu_max` (see the module docs)
+            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
+            base = sqp.release_inactive(ev, lam, lam_qp)
+            return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
+
+        # If B's step is no descent direction for the merit (B degenerated, or the knot
+        # ordering bent the step), restart from a scaled identity. Both are cheap (no
+        # integration), so both are computed: no branch under vmap.
+        B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
+        from_B, from_reset = start(state.B), start(B_reset)
+        reset = ~(from_B[5] < 0)
+        d_new, lam_new, dlam_new, mu_new, phi0_new, dphi0_new = jax.tree.map(
+            lambda r, b: jnp.where(reset, r, b), from_reset, from_B
+        )
+        fresh = ~state.searching
+        B = jnp.where(fresh & reset, B_reset, state.B)
+        pick = lambda new, old: jnp.where(fresh, new, old)
+        d, dlam, lam = pick(d_new, state.d), pick(dlam_new, state.dlam), pick(lam_new, lam)
+        mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
+        alpha = jnp.where(fresh, 1.0, state.alpha)
+
+        # one integration: the candidate
+        soc = state.soc
+        step_taken = alpha * d + jnp.where(soc, state.d_soc, 0.0)
+        lam_c = lam + alpha * dlam
+        if sqp.hessian == "bfgs" and sqp.exact_iterations > 0:
+            # exact Hessians for the first `exact_iterations` iterations, then BFGS
+            early = state.num_iterations < sqp.exact_iterations
+            cand, B_exact = lax.cond(
+                early,
+                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, lam_c),
+                lambda: (sqp.restricted(problem, control, a + step_taken, simulator), B),
+            )
+        else:
+            cand, B_exact = sqp.evaluate(problem, control, a + step_taken, simulator, lam_c)
+            early = True
+        phi = _merit(cand, lam_c, mu)
+        finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
+        descent = dphi0 < 0
+        # Armijo, relaxed by the merit's round-off (10 eps |phi|): near the solution the
+        # predicted decrease falls below what float64 can resolve.
+        slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))
+        accept = finite & descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)
+
+        # accepted: Hessian update at the new point
+        if B_exact is None:
+            B_acc = _bfgs_step(B, step_taken, cand, ev, lam_c)
+        elif sqp.hessian == "bfgs":
+            B_acc = jnp.where(early, B_exact, _bfgs_step(B, step_taken, cand, ev, lam_c))
+        else:
+            B_acc = B_exact
+        # rejected: a shorter step (quadratic interpolation of the merit, safeguarded)
+        curv = (phi - phi0 - dphi0 * alpha) / alpha**2
+        alpha_q = jnp.where(curv > 0, -dphi0 / (2.0 * jnp.where(curv > 0, curv, 1.0)), 0.1 * alpha)
+        alpha_q = jnp.where(finite, jnp.clip(alpha_q, 0.1 * alpha, 0.5 * alpha), 0.1 * alpha)
+        # A rejected full step is first retried with a second-order correction (the
+        # constraints' curvature: the candidate's E observed from the same point), and the
+        # backtracking step is kept for the case that the correction fails too.
+        try_soc = fresh & ~accept & finite & descent
+        alpha_next = jnp.where(soc, state.alpha_bt, jnp.where(try_soc, 1.0, alpha_q))
+        d_soc = sqp.correction(ev, B, cand.E, knots, dknots, d)
+
+        new_a = jnp.where(accept, a + step_taken, a)
+        new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
+        new_lam = jnp.where(accept, lam_c, lam)
+        maxE = jnp.max(jnp.abs(new_ev.E))
+        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, sqp.path_active))
+        feasible = (maxE <= sqp.ctol) & (_max_path(new_ev) <= sqp.ctol)
+        # No measurable progress is left: the line search failed, the direction is no
+        # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
+        # within the merit's round-off without halving the projected gradient.
+        improved = pg < 0.5 * state.best_gradient
+        unresolved = accept & (phi > phi0 - slack) & ~improved
+        flat = jnp.where(accept, jnp.where(unresolved, state.num_flat + 1, 0), state.num_flat)
+        negligible = jnp.linalg.norm(step_taken) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
+        no_progress = (
+            (~accept & ~try_soc & (alpha_next < self.min_step))
+            | ~descent
+            | (accept & negligible)
+            | (flat >= self.flat_steps)
+        )
+        converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
+        done = converged | stalled
+
+        i = state.num_steps
+        history = state.history.record(
+            i,
+            objective=new_ev.G,
+            max_constraint_error=maxE,
+            rho=alpha,
+            phase=jnp.where(fresh, 1, jnp.where(soc, 3, 2)).astype(jnp.int32),
+            accepted=accept,
+            constraint_tolerance=sqp.ctol,
+        )
+        return LineSearchState(
+            a=new_a,
+            ev=new_ev,
+            lam=new_lam,
+            B=jnp.where(accept, B_acc, B),
+            mu=mu,
+            d=d,
+            dlam=dlam,
+            alpha=jnp.where(accept, 1.0, alpha_next),
+            phi0=phi0,
+            dphi0=dphi0,
+            searching=~accept,
+            soc=~accept & try_soc,
+            d_soc=d_soc,
+            alpha_bt=jnp.where(try_soc, alpha_q, state.alpha_bt),
+            radius=jnp.where(
+                accept,
+                jnp.where(alpha < 1.0, alpha * jnp.max(jnp.abs(d)), jnp.minimum(2.0 * state.radius, 1e3)),
+                state.radius,
+            ),
+            num_flat=flat.astype(jnp.int32),
+            best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
+            num_iterations=state.num_iterations + accept.astype(jnp.int32),
+            num_integrations=state.num_integrations + 1,
+            num_steps=i + 1,
+            done=done,
+            status=Status.where(converged, Status.SUCCESS, Status.STALLED),
+            history=history,
+        )
+
+    def progress(self, state: LineSearchState):
+        return {"alpha": state.alpha, "mu": state.mu}
