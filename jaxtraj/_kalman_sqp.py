@@ -11,60 +11,41 @@ returns the SQP step
 
 and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a + B d).
 
-Design (each point measured on the seven Earth-Mars cases, benchmarks/compare_solvers.py):
-
 * Hessian. `hessian="bfgs"` (default): B is the exact Hessian of the Lagrangian
   (forward-over-forward autodiff through the simulation) at a0 and at the candidates of the
-  first `exact_iterations` (3) iterations, then Powell-damped BFGS updates on the
-  Lagrangian gradient, which keep it positive definite. Measured on the seven cases: with
-  pure BFGS from a0's Hessian (`exact_iterations=0`) case 3 ends in a worse local minimum
-  (3.35114 instead of 3.32080) and cases 1, 2, 7 need 49, 51, 34 iterations; with 3 exact
-  iterations all seven reach the best known optima in 11-31 iterations (24, 28, 21, 11, 14,
-  31, 27 with the second-order correction below), at a similar wall time. `hessian="exact"`:
-  the exact Hessian at every candidate (one second-order integration per step: fewer
-  iterations, 12, 28, 16, 8, 9, 18, 16, more time per iteration). Either exact Hessian is
-  made positive definite by `convexify` (B = nabla^2 L + c H^T H, which leaves the QP's
-  solution unchanged, then lifted eigenvalues where that is not enough).
+  first `exact_iterations` iterations, then Powell-damped BFGS updates on the Lagrangian
+  gradient, which keep it positive definite (the early exact Hessians steer the first steps
+  into the right basin; pure BFGS ends case 3 in a worse local minimum). `hessian="exact"`:
+  the exact Hessian at every candidate (fewer iterations, more work per iteration). Either
+  exact Hessian is made positive definite by `convexify`.
 * Globalization (`globalization`, a module with its own settings and state): the merit line
-  search `jt.LineSearch` (default; `jaxtraj._line_search`: augmented-Lagrangian merit,
-  second-order correction, penalty raised only while constraints are violated) or the
-  composite-step trust region `jt.TrustRegion` (`jaxtraj._trust_region`, exact Hessian, no
-  path constraints). This module holds what both share: the QP step by the filter, its
-  multipliers, the second-order correction, the Hessians.
-* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`,
-  as in `KalmanSearch` but without its held half gap: the line search shortens the step).
-* Path constraints C(t, x, u) <= 0 (on the integration grid), the appendix-C way: the grid
+  search `jt.LineSearch` (default; `jaxtraj._line_search`) or the composite-step trust region
+  `jt.TrustRegion` (`jaxtraj._trust_region`; exact Hessian, no path constraints). This module
+  holds what both share: the QP step by the filter, its multipliers, the second-order
+  correction, the Hessians.
+* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`).
+* Path constraints C(t, x, u) <= 0 on the integration grid, the appendix-C way: the grid
   points of an active set become observations C_a d = -C after the terminal ones. The active
-  set (see `_direction`): the previous iteration's (positive multipliers), less rows whose
+  set (`direction`): the previous iteration's (positive multipliers), less rows whose
   multiplier turns negative, then the most violated predicted row one at a time (a primal
   active-set QP on the same rank-one updates), skipping rows nearly dependent on those
   already observed (adjacent grid points). The multipliers lambda = [lambda_E; nu >= 0] of
-  all rows enter the Lagrangian (BFGS, exact Hessian) and the merit (PHR term
-  (max(0, nu + mu C)^2 - nu^2) / (2 mu) per grid point). A fresh direction first sets to 0
-  the multipliers of points that are strictly inactive (C < -`path_active`) and outside the
-  QP's active set (`_release_inactive`): a leftover nu there adds dnu C > 0 to the merit's
-  slope and, near the optimum, turned every direction into an ascent one. SUCCESS needs
-  max C <= `ctol` and the projected gradient is taken against [H; C_a] of the points with
-  C >= -`path_active`. Measured on the attitude slew with the sun cone
-  (examples/attitude.py): from rest, both representations reach the augmented-Lagrangian
-  optimum's energy to 1e-8 relative with SUCCESS (175 / 115 iterations, the first ones
-  overshoot), also from starts perturbed by round-off.
+  all rows enter the Lagrangian and the merit. A fresh direction first releases the
+  multipliers of points that are strictly inactive and outside the QP's active set
+  (`release_inactive`): a leftover nu there makes the merit's slope positive near the optimum.
 * One `step` = one candidate integration (with first-, or with `hessian="exact"`
   second-order sensitivities), branch-free, so a batch under `vmap` runs the same work for
   every start.
 * Termination. What SUCCESS guarantees: max |E_i| <= `ctol`, max C <= `ctol` on the grid,
   and the projected gradient |V G_a| (V: projection on the tangent space of E and of the
   path points with C >= -`path_active`) <= `acceptable_gtol` (1 + |G|). The search runs
-  until |V G_a| <= `gtol` (1 + |G|) (the usual outcome: 1e-9, far below the guarantee) or
-  until no measurable progress is left (each globalization says when: for the line search a
-  step below `min_step`, no descent direction, a negligible step, or `flat_steps` accepted
-  steps in a row within the merit's round-off; for the trust region a collapsed radius or
-  step). That point is SUCCESS if it meets the guarantee, otherwise STALLED. Why two
-  levels: the projected gradient's floor is set by the round-off of the sensitivities, not
-  by the method, and on the solar-sail and attitude problems it lies at 1e-9..1e-7
-  (1 + |G|): a single test at 1e-9 turned SUCCESS into STALLED (or a long wander into
-  MAX_ITERATIONS) with the last bits of the start, i.e. with the CPU (issue 17: 11 of 33
-  sail starts perturbed by 1e-14..3e-10 relative; benchmarks/roundoff.py).
+  until |V G_a| <= `gtol` (1 + |G|) (the usual outcome) or until no measurable progress is
+  left (each globalization says when); that point is SUCCESS if it meets the guarantee,
+  otherwise STALLED. Two levels, because the projected gradient's floor is set by the
+  round-off of the sensitivities, not by the method: a single test at `gtol` would flip
+  between SUCCESS and STALLED with the last bits of the start, i.e. with the CPU.
+
+Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs/history.md`.
 """
 
 import equinox as eqx

@@ -14,18 +14,14 @@ Each step d = v + u, within |d|_2 <= radius:
   Sorensen): the eigenvalues of the reduced Hessian V W V give the shift sigma >= 0 with
   (V W V + sigma I) u = -V (g + W v) and |u| on the boundary (or sigma = 0 inside); with
   negative curvature the step runs to the boundary along it instead of being convexified away.
-  This is what the line search could not do: on case 2 the iterates pass near a saddle of the
-  reduced problem (curvature -3.5e-3), where the line-search SQP, with its eigenvalues made
-  positive, crawled (28 iterations), the trust-region one takes 9.
+  This is what the line search cannot do: near a saddle of the reduced problem (Earth-Mars
+  case 2) the line-search SQP, with its eigenvalues made positive, crawls.
 * free knot times: a gap t_{i+1} - t_i may shrink to no less than `gap_floor` of its length in
   one step; a step that would shrink it further observes the gap's change at that bound, as one
   more row of the filter, one row per round, rows added until none is violated. This is appendix
-  C's observation of the approach of two knots (z* = g / a_t on h* = -dg/da) with a_t =
-  1 / (1 - gap_floor), decided differently from the thesis in two ways: the row is noise-free
-  (not variance z*^2 / 12), so the trust region's step meets it, and it enters as soon as the step
-  would take more than that share of the gap, not only when the knots would cross. Measured in
-  the prototype: with a floor of 1/10 case 7 collapses a level (ends at 3.34306 against 3.33475,
-  projected gradient 6e-2 against the ordering bound); 1/2 keeps it.
+  C's observation of the approach of two knots with a_t = 1 / (1 - gap_floor), noise-free (so
+  the trust region's step meets it), and entered as soon as the step would take more than that
+  share of the gap, not only when the knots would cross.
 
 Step rule: the ratio of the actual to the predicted decrease of the augmented-Lagrangian merit
 G + lambda^T E + nu/2 |E|^2 (least-squares multipliers at the current point; nu raised so that
@@ -38,11 +34,8 @@ first-order sensitivities; an accepted one that does not end the solve is integr
 for the Hessian of the Lagrangian with its own least-squares multipliers (`lagrangian_hessian`;
 both count in `integrations`).
 
-Measured on the seven Earth-Mars cases (benchmarks/compare_solvers.py, thesis 11, 15, 12, 14,
-17, 15, 19): 10, 9, 8, 7, 8, 8, 13 iterations to max |E| <= 1e-10 and a projected gradient
-<= 1e-9 (1 + |G|), against 12, 28, 16, 8, 9, 18, 16 with the exact Hessian and the line search.
-With damped BFGS or SR1 instead of the exact Hessian the same trust region needed 172-1012
-iterations in all (a prototype, session 6; benchmarks/RESULTS.md), hence exact Hessians only.
+Only exact Hessians: with damped BFGS or SR1 the same trust region needed far more iterations
+(benchmarks/RESULTS.md).
 """
 
 import equinox as eqx
@@ -61,10 +54,10 @@ _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the brac
 
 
 def lagrangian_hessian(problem, control, a, simulator, lam):
-    """Hessian of the Lagrangian G + lambda^T E at `a` (zero if not finite): forward over reverse autodiff of the
-    plain simulation with RK4 (measured 1.5-1.8x faster than forward over the forward
-    sensitivities on Earth-Mars cases 1, 4, 5: 1.7 vs 2.7 ms, 3.1 vs 5.5, 2.1 vs 3.7), forward
-    over forward for other simulators (diffrax runs with forward-mode adjoints only)."""
+    """Hessian of the Lagrangian G + lambda^T E at `a` (zero if not finite): forward over
+    reverse autodiff of the plain simulation with RK4 (faster than forward over the forward
+    sensitivities; benchmarks/RESULTS.md), forward over forward for other simulators (diffrax
+    runs with forward-mode adjoints only)."""
     if isinstance(simulator, RK4):
 
         def lagrangian(a):
