@@ -86,6 +86,7 @@ import numpy as np
 import optax
 
 from ._driver import AbstractSolver
+from ._kkt import multipliers
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._status import Status
@@ -438,7 +439,7 @@ class AugmentedLagrangian(AbstractSolver):
         else:
             rho0 = jnp.asarray(self.penalty_init, ev.G.dtype)
         # first-order estimate: G_a = lambda^T (e_scale H) in the least-squares sense
-        lam0 = jnp.linalg.lstsq((e_scale[:, None] * ev.H).T, ev.G_a)[0]
+        lam0 = -multipliers(e_scale[:, None] * ev.H, ev.G_a)
         lam0 = jnp.clip(jnp.where(jnp.all(jnp.isfinite(lam0)), lam0, 0.0), -self.multiplier_max, self.multiplier_max)
         return Multipliers(
             lam=lam0,
@@ -465,7 +466,7 @@ class AugmentedLagrangian(AbstractSolver):
         )
         metric = self._metric(ev, m, a, grad, box)
         f = jnp.float64
-        hist = History.empty(max_steps)
+        hist = History.empty(max_steps, ("outer_iteration",))
         C, _ = _path_arrays(ev)
         return _State(
             a=a,
@@ -592,10 +593,10 @@ class AugmentedLagrangian(AbstractSolver):
             i,
             objective=ev.G,
             max_constraint_error=maxE,
-            rho=jnp.linalg.norm(new_a - a),
-            phase=state.num_outer,
+            step_norm=jnp.linalg.norm(cand_a - a),
             accepted=accept,
             constraint_tolerance=self.ctol,
+            details={"outer_iteration": state.num_outer},
         )
         return _State(
             a=new_a,

@@ -50,7 +50,7 @@ def init_state(solver, problem, control, a0, simulator, max_steps, history=True)
     """The solver's initial state; with `history=False` its `History` has length 0 (not
     recorded: under `vmap` the per-step record of a long history costs more than a step)."""
     state = solver.init(problem, control, a0, simulator, max_steps)
-    return state if history else eqx.tree_at(lambda s: s.history, state, History.empty(0))
+    return state if history else eqx.tree_at(lambda s: s.history, state, History.empty(0, tuple(state.history.details)))
 
 
 def run_loop(solver, problem, control, a0, simulator, max_steps, progress_every=0, history=True):

@@ -297,7 +297,7 @@ class KalmanSearch(AbstractSolver):
     def init(self, problem, control, a0, simulator, max_steps):
         ev = evaluate_restricted(problem, control, a0, simulator, self.method)
         f = jnp.float64
-        hist = History.empty(max_steps)
+        hist = History.empty(max_steps, ("rho", "phase"))
         ok0 = ev.status == Status.SUCCESS
         e_a0 = jnp.asarray(self.e_a_start, f)
         return _State(
@@ -419,10 +419,10 @@ class KalmanSearch(AbstractSolver):
             i,
             objective=new_ev.G,
             max_constraint_error=maxE,
-            rho=rho,
-            phase=phase,
+            step_norm=jnp.linalg.norm(da),
             accepted=accept,
             constraint_tolerance=e_a,
+            details={"rho": rho, "phase": phase},
         )
         return _State(
             a=new_a,

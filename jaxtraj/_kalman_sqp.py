@@ -57,6 +57,7 @@ from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequent
 from ._kkt import (
     active_rows,
     lagrangian_gradient,
+    multipliers,
     path_rows,
     projected_gradient,
 )
@@ -293,7 +294,7 @@ class KalmanSQP(AbstractSolver):
     def _stationary_multipliers(ev, B, d, active):
         """Least-squares solution of [H; C_a(active)]^T lam = -(G_a + B d)."""
         A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], path_rows(ev)[1], 0.0)])
-        return jnp.linalg.lstsq(A.T, -(ev.G_a + B @ d))[0]
+        return multipliers(A, ev.G_a + B @ d)
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
         """Second-order correction of a full step d: the smallest step (metric B) with

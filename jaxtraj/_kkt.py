@@ -29,12 +29,17 @@ def active_rows(ev, tol):
     return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
+def multipliers(rows, g):
+    """The multipliers lambda that minimize |g + rows^T lambda| (least squares, robust to
+    dependent rows): every solver's multiplier estimate is this one solve."""
+    return jnp.linalg.lstsq(rows.T, -g)[0]
+
+
 def least_squares_multipliers(ev, path_active):
     """Least-squares multipliers of E and of the path points with C >= -`path_active`
     ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
     converged point, the first active set is the touching one."""
-    A = active_rows(ev, path_active)
-    lam = jnp.linalg.lstsq(A.T, -ev.G_a)[0]
+    lam = multipliers(active_rows(ev, path_active), ev.G_a)
     m = ev.E.shape[0]
     return lam if lam.shape[0] == m else lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
 
@@ -57,5 +62,4 @@ def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
 
 def projected_gradient(G_a, H):
     """|V G_a|, V = I - H^T (H H^T)^-1 H [3.62] (least squares, robust to dependent rows)."""
-    lam, *_ = jnp.linalg.lstsq(H.T, G_a)
-    return jnp.linalg.norm(G_a - H.T @ lam)
+    return jnp.linalg.norm(G_a + H.T @ multipliers(H, G_a))

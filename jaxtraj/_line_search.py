@@ -192,7 +192,7 @@ class LineSearch(eqx.Module):
         lam = least_squares_multipliers(sqp.restricted(problem, control, a0, simulator), sqp.path_active)
         ev, B = sqp.exact_hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
-        hist = History.empty(max_steps)
+        hist = History.empty(max_steps, ("alpha", "kind"))
         ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
         zero = jnp.zeros_like(a0)
         return LineSearchState(
@@ -322,10 +322,10 @@ class LineSearch(eqx.Module):
             i,
             objective=new_ev.G,
             max_constraint_error=maxE,
-            rho=alpha,
-            phase=jnp.where(fresh, 1, jnp.where(soc, 3, 2)).astype(jnp.int32),
+            step_norm=jnp.linalg.norm(step_taken),
             accepted=accept,
             constraint_tolerance=sqp.ctol,
+            details={"alpha": alpha, "kind": jnp.where(fresh, 1, jnp.where(soc, 3, 2))},
         )
         return LineSearchState(
             a=new_a,

@@ -10,39 +10,57 @@ from ._status import Status
 
 class History(eqx.Module):
     """Fixed-length per-step records (length `max_steps`; entries past `steps` are unused
-    and hold NaN / -1). One entry per integration of a candidate step."""
+    and hold NaN / False). One entry per integration of a candidate step. Each field means
+    the same for every solver:
 
-    objective: jax.Array  # objective at the current accepted point after the step
-    max_constraint_error: jax.Array  # max |E_i| at the current accepted point
-    rho: jax.Array  # the gradient-step weight rho used for the candidate
-    phase: jax.Array  # 0 = constraint capture, 1 = minimum search, -1 = unused
-    accepted: jax.Array  # whether the candidate was accepted
-    constraint_tolerance: jax.Array  # e_a in force
+    - `objective`, `max_constraint_error`: G and max |E_i| at the current accepted point after
+      the step;
+    - `step_norm`: |a_candidate - a|, the length of the candidate step that was integrated;
+    - `accepted`: whether the candidate was accepted;
+    - `constraint_tolerance`: the tolerance on max |E_i| in force (KalmanSearch's e_a
+      schedule; the fixed `ctol` of the others);
+    - `details`: the solver's own per-step quantities under its own names, float64 (NaN where
+      unused): KalmanSearch `rho` (gradient weight) and `phase` (0 constraint capture, 1
+      minimum search); KalmanSQP with `LineSearch` `alpha` (step fraction) and `kind` (1 new
+      direction, 2 backtracking, 3 second-order correction), with `TrustRegion` `radius` and
+      `kind`; AugmentedLagrangian `outer_iteration`.
+    """
+
+    objective: jax.Array
+    max_constraint_error: jax.Array
+    step_norm: jax.Array
+    accepted: jax.Array
+    constraint_tolerance: jax.Array
+    details: dict[str, jax.Array]
 
     @classmethod
-    def empty(cls, max_steps: int) -> "History":
-        """Unused records (NaN / -1 / False) for `max_steps` steps."""
+    def empty(cls, max_steps: int, details: tuple[str, ...] = ()) -> "History":
+        """Unused records (NaN / False) for `max_steps` steps, with the named `details`."""
         nan = jnp.full(max_steps, jnp.nan, jnp.float64)
         return cls(
             objective=nan,
             max_constraint_error=nan,
-            rho=nan,
-            phase=jnp.full(max_steps, -1, jnp.int32),
+            step_norm=nan,
             accepted=jnp.zeros(max_steps, bool),
             constraint_tolerance=nan,
+            details={name: nan for name in details},
         )
 
-    def record(self, i, **values) -> "History":
-        """A copy with entry `i` of every field set from `values` (one keyword per field);
-        an index past the end is dropped, and a zero-length history (no history kept) stays
-        as it is."""
+    def record(self, i, *, details=None, **values) -> "History":
+        """A copy with entry `i` of every field set from `values` (one keyword per field) and
+        of every detail from `details` (a dict with the names given to `empty`); an index past
+        the end is dropped, and a zero-length history (no history kept) stays as it is."""
         if self.objective.shape[-1] == 0:
             return self
-        return History(**{k: getattr(self, k).at[i].set(v, mode="drop") for k, v in values.items()})
+        put = lambda h, v: h.at[i].set(v, mode="drop")
+        return History(
+            **{k: put(getattr(self, k), v) for k, v in values.items()},
+            details={k: put(self.details[k], v) for k, v in (details or {}).items()},
+        )
 
     def clear_from(self, steps) -> "History":
         """A copy with the entries from `steps` on reset to unused."""
-        unused = History.empty(self.objective.shape[-1])
+        unused = History.empty(self.objective.shape[-1], tuple(self.details))
         return jax.tree.map(lambda h, e: jnp.where(jnp.arange(h.shape[-1]) < steps, h, e), self, unused)
 
 

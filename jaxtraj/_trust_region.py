@@ -77,7 +77,7 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
 
 
 def _multipliers(ev: Evaluation):
-    lam = least_squares_multipliers(ev, 0.0)  # no path rows here: lstsq(H^T, -G_a)
+    lam = least_squares_multipliers(ev, 0.0)  # no path rows here: the multipliers of E alone
     return jnp.where(jnp.all(jnp.isfinite(lam)), lam, 0.0)
 
 
@@ -216,7 +216,7 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
         num_steps=jnp.array(0, jnp.int32),
         done=~ok0,
         status=Status.where(ok0, Status.SUCCESS, ev.status),
-        history=History.empty(max_steps),
+        history=History.empty(max_steps, ("radius", "kind")),
     )
 
 
@@ -285,10 +285,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         i,
         objective=new_ev.G,
         max_constraint_error=maxE,
-        rho=state.radius,
-        phase=jnp.where(fresh, 1, 3).astype(jnp.int32),
+        step_norm=jnp.linalg.norm(total),
         accepted=accept,
         constraint_tolerance=sqp.ctol,
+        details={"radius": state.radius, "kind": jnp.where(fresh, 1, 3)},
     )
     return TRState(
         a=new_a,

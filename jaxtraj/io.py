@@ -14,7 +14,8 @@ from ._simulate import Trajectory
 from ._solution import History, Solution
 from ._status import STATUS_NAMES, Status, status_name
 
-_HISTORY_FIELDS = ("objective", "max_constraint_error", "rho", "phase", "accepted", "constraint_tolerance")
+_HISTORY_FIELDS = ("objective", "max_constraint_error", "step_norm", "accepted", "constraint_tolerance")
+_DETAIL = "history_detail_"
 
 
 def atomic_write(path, write):
@@ -61,6 +62,7 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None):
         "knots": np.asarray(traj.knots),
         "xf": np.asarray(traj.xf),
         **{f"history_{k}": np.asarray(getattr(sol.history, k))[:n] for k in _HISTORY_FIELDS},
+        **{f"{_DETAIL}{k}": np.asarray(v)[:n] for k, v in sol.history.details.items()},
     }
     atomic_write(os.path.join(folder, "arrays.npz"), lambda f: np.savez(f, **arrays))
     summary = {
@@ -93,7 +95,10 @@ def load(folder):
     with np.load(os.path.join(folder, "arrays.npz")) as data:
         arrays = {k: data[k] for k in data.files}
     status = getattr(Status, summary["status"]) if summary["status"] in STATUS_NAMES else Status.NONFINITE
-    history = History(**{k: jnp.asarray(arrays[f"history_{k}"]) for k in _HISTORY_FIELDS})
+    history = History(
+        **{k: jnp.asarray(arrays[f"history_{k}"]) for k in _HISTORY_FIELDS},
+        details={k[len(_DETAIL) :]: jnp.asarray(v) for k, v in arrays.items() if k.startswith(_DETAIL)},
+    )
     sol = Solution(
         params=jnp.asarray(arrays["params"]),
         tf=jnp.asarray(summary["tf"]),

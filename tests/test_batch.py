@@ -306,7 +306,7 @@ def test_random_starts_are_valid_and_bounded(ctrl):
     assert starts.shape == (40, ctrl.num_params) and starts.dtype == np.float64
     for a in starts:
         ctrl.validate(a)  # times increasing, tf > 0
-    idx, _, _ = _batch._value_slots(ctrl, bounded)
+    idx, _, _ = jt.controls.value_bounds(ctrl, bounded.control_lower, bounded.control_upper)
     assert idx.size > 0 and np.all(starts[:, idx] >= 0.0) and np.all(starts[:, idx] <= 4.0)
     assert np.any(starts[:, idx] == 0.0) and np.any(starts[:, idx] == 4.0)  # clipping happened
     t = list(ctrl.time_indices)

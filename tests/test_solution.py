@@ -128,3 +128,27 @@ def test_problem_name_does_not_recompile():
     assert p.name == "second" and isinstance(p.name, str)
     with pytest.raises(ValueError, match="name"):
         jt.Problem(base.dynamics, base.x0, base.terminal, base.constraint_names, args=base.args, name=3)
+
+
+@pytest.mark.parametrize(
+    ("solver", "details"),
+    [
+        (jt.KalmanSearch(), {"rho", "phase"}),
+        (jt.KalmanSQP(), {"alpha", "kind"}),
+        (jt.KalmanSQP(hessian="exact", globalization="trust-region"), {"radius", "kind"}),
+        (jt.AugmentedLagrangian(), {"outer_iteration"}),
+    ],
+    ids=["KalmanSearch", "LineSearch", "TrustRegion", "AugmentedLagrangian"],
+)
+def test_history_fields_mean_the_same_for_every_solver(solver, details):
+    """`step_norm` is the length of the integrated candidate: after one accepted step it is
+    |params - a0|; the solver's own quantities are under `details` with its names."""
+    prob = jt.problems.analytic.min_energy_double_integrator()
+    ctrl = jt.controls.PiecewiseLinear(3)
+    a0 = jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0))
+    sol = jt.solve(prob, ctrl, a0, solver, simulator=jt.RK4(4), max_steps=1)
+    h = sol.history
+    assert set(h.details) == details and int(sol.steps) == 1
+    assert bool(h.accepted[0])
+    assert float(h.step_norm[0]) == pytest.approx(float(jnp.linalg.norm(sol.params - a0)), rel=1e-12)
+    assert float(h.max_constraint_error[0]) == pytest.approx(float(sol.max_constraint_error), rel=1e-12)
