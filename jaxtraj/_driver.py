@@ -20,8 +20,11 @@ class AbstractSolver(eqx.Module):
     """A solver of the restricted problem as a state machine over an array-only state.
 
     `state` must carry `done` (bool scalar), `num_steps` and `history` (a `History`, written
-    only by `History.record`: drivers may give it length 0); `step` performs one trajectory
-    integration.
+    only by `History.record`: drivers may give it length 0). Each `step` integrates one
+    candidate point with sensitivities (the trust region adds one second-order integration
+    at an accepted point; `Solution.integrations` counts them all) and records one History
+    entry. Everything static (configuration, shapes) stays the same from step to step: the
+    driver checks it at trace time.
     """
 
     @abc.abstractmethod
@@ -30,7 +33,7 @@ class AbstractSolver(eqx.Module):
 
     @abc.abstractmethod
     def step(self, problem, control, simulator, state):
-        """One step (at most one integration with sensitivities); returns the new state."""
+        """One step: one candidate integration (see the class docs); returns the new state."""
 
     @abc.abstractmethod
     def postprocess(self, problem, control, simulator, state) -> Solution:
