@@ -16,7 +16,7 @@ run: $(STAMP)
 	$(VENV)/bin/jaxtraj solve earth-mars --case 4 --out results/earth-mars-case4
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=30
 
 # lint, format check, and the documentation site built with --strict (into a throwaway folder)
 check: $(STAMP)
