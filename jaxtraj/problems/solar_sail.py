@@ -40,22 +40,19 @@ solution of the unrestricted problem (`solve_indirect`), written in NumPy/SciPy 
 any of jaxtraj's integration or differentiation code.
 """
 
-import dataclasses
 import math
-import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.integrate
-import scipy.optimize
 
 from .._checks import check_problem_and_control
 from .._problem import Problem
 from .._simulate import RK4, AbstractSimulator, check_simulator, final_state
 from .._status import Status
 from ..controls import AbstractControl, SaturatedSpline
+from ._sail_indirect import DAYS_PER_UNIT, IndirectResult, optimal_pitch, shoot
 
 #: Mean orbital radii of the targets [AU] (circular, coplanar orbits). Seed 003 Table 1
 #: rounds them to 0.39, 0.72, 1.52.
@@ -74,9 +71,6 @@ TF_KELLEY = 6.9925
 #: pitch guesses land on the same extremal): 0.01 % above the published 6.9925 (= 406.52 d vs
 #: 406.48 d). Every feasible restricted control we measured lies above it.
 TF_KELLEY_INDIRECT = 6.993186
-
-#: Days per normalized time unit: 1 unit = 1 / (2 pi) year.
-DAYS_PER_UNIT = 365.25 / (2.0 * math.pi)
 
 #: Default weights (lambda_1, ..., lambda_4) of the penalty functional (seed eq. 5; the seed
 #: leaves them open): 1 on tf in days, 1e10 on each squared terminal error. Measured on
@@ -459,74 +453,6 @@ def diagnose(
 # ---------------------------------------------------------------------- indirect method
 
 
-def optimal_pitch(lam_u, lam_v):
-    """The pitch minimizing lam_u cos^3(alpha) + lam_v cos^2(alpha) sin(alpha) over
-    [-pi/2, pi/2] (Pontryagin's minimum principle for this sail; NumPy scalars).
-
-    Stationary points (besides the edge-on +-pi/2) solve 2 lam_v t^2 + 3 lam_u t - lam_v = 0,
-    t = tan(alpha); the candidates are compared directly.
-    """
-    a, b, c = 2.0 * lam_v, 3.0 * lam_u, -lam_v
-    disc = math.sqrt(b * b - 4.0 * a * c)  # = sqrt(9 lam_u^2 + 8 lam_v^2) >= 0
-    q = -0.5 * (b + math.copysign(disc, b))  # stable quadratic formula
-    cands = [0.5 * math.pi, -0.5 * math.pi]
-    if a != 0.0:
-        cands.append(math.atan(q / a))
-    if q != 0.0:
-        cands.append(math.atan(c / q))
-    vals = [lam_u * math.cos(x) ** 3 + lam_v * math.cos(x) ** 2 * math.sin(x) for x in cands]
-    return cands[int(np.argmin(vals))]
-
-
-def _state_costate_rhs(a0, mu):
-    def rhs(t, y):
-        r, _, u, v, lr, lu, lv = y
-        al = optimal_pitch(lu, lv)
-        c, s = math.cos(al), math.sin(al)
-        thrust_r, thrust_t = a0 * c**3, a0 * c * c * s
-        return [
-            u,
-            v / r,
-            v * v / r - mu / r**2 + thrust_r / r**2,
-            -u * v / r + thrust_t / r**2,
-            # lambda' = -dH/dx (lambda_theta = 0: theta is free and absent from f)
-            -(
-                lu * (-v * v / r**2 + 2.0 * mu / r**3 - 2.0 * thrust_r / r**3)
-                + lv * (u * v / r**2 - 2.0 * thrust_t / r**3)
-            ),
-            -(lr - lv * v / r),
-            -(2.0 * lu * v / r - lv * u / r),
-        ]
-
-    return rhs
-
-
-def _hamiltonian(y, a0, mu):
-    r, _, u, v, lr, lu, lv = y
-    al = optimal_pitch(lu, lv)
-    c, s = math.cos(al), math.sin(al)
-    return 1.0 + lr * u + lu * (v * v / r - mu / r**2 + a0 * c**3 / r**2) + lv * (-u * v / r + a0 * c * c * s / r**2)
-
-
-@dataclasses.dataclass(frozen=True)
-class IndirectResult:
-    """Outcome of `solve_indirect`: `tf`, `tf_days`, the initial costates
-    `(lambda_r, lambda_u, lambda_v)` (lambda_theta = 0), the shooting `residual`
-    (r - r_f, u, v - v_f, H(0)), `success` (max |residual| <= 1e-9), the dense solution
-    (`t`, `x` of shape (N, 4), `alpha`), the number of `starts` tried and `wall_time` [s]."""
-
-    tf: float
-    tf_days: float
-    costates: np.ndarray
-    residual: np.ndarray
-    success: bool
-    t: np.ndarray
-    x: np.ndarray
-    alpha: np.ndarray
-    starts: int
-    wall_time: float
-
-
 def solve_indirect(
     target: str = "mars",
     a0: float = KELLEY_A0,
@@ -556,12 +482,10 @@ def solve_indirect(
 
     **Returns:** an `IndirectResult`; check `success` (the best start is returned either way).
     """
-    start = time.perf_counter()
     radius = _target_radius(target, r_f)
     a0, mu = float(a0), float(mu)
     if not a0 > 0:
         raise ValueError(f"`a0` must be > 0 for a transfer; got {a0!r}.")
-    v_f = math.sqrt(mu / radius)
     if tf_guess is None:
         tf_guess = TF_BOX[target.lower()] / 2.0 if r_f is None else (7.0 if radius > 1.0 else 4.0)
     sign = 1.0 if radius > 1.0 else -1.0
@@ -574,58 +498,7 @@ def solve_indirect(
         )
     if not (isinstance(dense_points, int) and dense_points >= 2):
         raise ValueError(f"`dense_points` must be an int >= 2; got {dense_points!r}.")
-    rhs = _state_costate_rhs(a0, mu)
-
-    def integrate(z, dense=False):
-        y0 = [1.0, 0.0, 0.0, math.sqrt(mu), z[0], z[1], z[2]]
-        return scipy.integrate.solve_ivp(
-            rhs, (0.0, z[3]), y0, method="DOP853", rtol=rtol, atol=rtol, dense_output=dense
-        )
-
-    def residual(z):
-        if not z[3] > 0:
-            return np.full(4, 1e3)
-        sol = integrate(z)
-        if not sol.success:
-            return np.full(4, 1e3)
-        yf = sol.y[:, -1]
-        y0 = [1.0, 0.0, 0.0, math.sqrt(mu), z[0], z[1], z[2]]
-        return np.array([yf[0] - radius, yf[2], yf[3] - v_f, _hamiltonian(y0, a0, mu)])
-
-    best = None
-    tried = 0
-    for deg in pitch_guesses_deg:
-        tried += 1
-        al = math.radians(deg)
-        t = math.tan(al)
-        lv = -math.copysign(1.0, t)  # lambda_v < 0 pushes prograde, > 0 retrograde
-        lu = lv * (1.0 - 2.0 * t * t) / (3.0 * t)  # alpha stationary: 2 lv t^2 + 3 lu t - lv = 0
-        g = lu * math.cos(al) ** 3 + lv * math.cos(al) ** 2 * math.sin(al)
-        scale = -1.0 / (a0 * g)  # H(0) = 1 + a0 g = 0
-        z0 = np.array([0.0, lu * scale, lv * scale, float(tf_guess)])
-        sol = scipy.optimize.root(residual, z0, method="hybr", options={"xtol": 1e-13})
-        res = residual(sol.x)
-        if best is None or np.max(np.abs(res)) < np.max(np.abs(best[1])):
-            best = (sol.x, res)
-        if np.max(np.abs(res)) <= 1e-9:
-            break
-    z, res = best
-    dense = integrate(z, dense=True)
-    t = np.linspace(0.0, z[3], dense_points)
-    y = dense.sol(t)
-    alpha = np.array([optimal_pitch(lu, lv) for lu, lv in zip(y[5], y[6])])
-    return IndirectResult(
-        tf=float(z[3]),
-        tf_days=float(z[3]) * DAYS_PER_UNIT,
-        costates=np.asarray(z[:3], dtype=np.float64),
-        residual=res,
-        success=bool(np.max(np.abs(res)) <= 1e-9),
-        t=t,
-        x=y[:4].T.copy(),
-        alpha=alpha,
-        starts=tried,
-        wall_time=time.perf_counter() - start,
-    )
+    return shoot(radius, a0, mu, tf_guess, pitch_guesses_deg, rtol, dense_points)
 
 
 #: Upper ends of the transfer-time boxes [normalized units] (`box`, `solve_indirect`'s
