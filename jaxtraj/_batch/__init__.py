@@ -13,13 +13,12 @@ How a batch runs:
   each iteration is one vmapped solver `step` on every lane, and when a few lanes have
   finished they hand their solutions over and take the next starts, so no lane idles while
   starts are left (a vmapped group of whole solves would iterate until its slowest start is
-  done: 40-72 % useful work on Earth-Mars). `lanes=1` is a compiled loop of single solves.
+  done). `lanes=1` is a compiled loop of single solves.
 * Under `vmap` a start's iterations only touch its own lane, so a start that diverges (NaN,
   step limit) comes back with its failure `status` and leaves every other result unchanged.
   Every lane does the work of every step, though: a `lax.cond` on a per-start predicate runs
   both branches. On CPU, XLA's vmapped kernels gain too little over single ones for that
-  (benchmarks/batch.py: lanes=8 or 32 give 0.75-1.46x the loop, lanes=1 1.22-1.39x), so the
-  default there is `lanes=1`; on accelerators it is the whole per-device slice.
+  (benchmarks/RESULTS.md, `benchmarks/batch.py`), so the default there is `lanes=1`; on accelerators it is the whole per-device slice.
 * With `out=FOLDER` each finished chunk is written atomically (`chunk_00000.npz`, ...) next
   to `manifest.json` (number of starts, chunk size, and SHA-256 fingerprints of `a0s` and of
   the problem / control / solver / simulator / `max_steps`). `resume=True` loads the chunks
