@@ -85,7 +85,7 @@ def test_iteration_limit_is_a_status_and_history_is_recorded():
     assert h.objective.shape == (5,)
     assert np.all(np.isfinite(np.asarray(h.objective)))
     # the recorded constraint error of accepted capture steps decreases
-    acc = np.asarray(h.accepted) & (np.asarray(h.phase) == 0)
+    acc = np.asarray(h.accepted) & (np.asarray(h.details["phase"]) == 0)
     errs = np.concatenate([[0.318669], np.asarray(h.max_constraint_error)[acc]])
     assert np.all(np.diff(errs) < 0)
 
