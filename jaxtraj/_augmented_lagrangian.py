@@ -34,14 +34,11 @@ reads as stagnation). The inner tolerance starts at `inner_tol_init` and shrinks
 L L^T = M = `curvature` I + sum rho_i h_i h_i^T + sum_(active j) sigma c_j c_j^T, the
 Gauss-Newton curvature of the penalty terms at the start a_k of the outer iteration (the
 Gauss-Newton approximation of the seed's ref. [2]); without it (`precondition=False`) L-BFGS
-meets a condition number ~ penalty / curvature of G and needs far more steps (measured: 2450
-steps instead of 107 on the constrained attitude problem, 1.5-3x more on Earth-Mars cases 1-5,
-and cases 6-7 fail). `inner="lbfgs"`: one
+meets a condition number ~ penalty / curvature of G and needs far more steps (docs/history.md). `inner="lbfgs"`: one
 iteration of `optax.lbfgs` (`scale_by_lbfgs`, then its zoom line search, with the largest
 step limited so that no parameter moves by more than `max_step`: without that limit the
 zoom search's step doubling on the early, nearly linear subproblems of minimum-time problems
-lands in other basins: Earth-Mars case 5 ended at tf = 5.13, case 6 at 3.3766, case 7 did not
-converge; with it all seven cases reach the SLSQP optima to 1e-8). `inner="adam"`: one
+lands in other basins). `inner="adam"`: one
 `optax.adam` update.
 The line search calls `al_value`, a `jax.custom_vjp` scalar function whose forward pass
 integrates once with forward sensitivities (`evaluate_restricted`) and whose gradient is
@@ -74,9 +71,8 @@ non-decreasing candidate is rejected.
 !!! note "Accuracy floor"
     The line search compares values of L_A, which round-off resolves to ~1e-16 |L_A|; the
     reduced gradient cannot be driven much below ~sqrt(eps |L_A| x curvature) that way
-    (measured 5e-8..1e-6 on the library's problems), hence the default `gtol` = 1e-6. The
-    objective is far more accurate than that (its error is quadratic in the gradient's):
-    Earth-Mars case 4 reaches tf to 3e-9 of the SQP optimum.
+    (5e-8..1e-6 on the library's problems), hence the default `gtol` = 1e-6. The objective
+    is far more accurate than that (its error is quadratic in the gradient's).
 """
 
 import equinox as eqx
