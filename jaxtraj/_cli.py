@@ -8,7 +8,6 @@ import argparse
 import contextlib
 import datetime
 import io as io_module
-import json
 import os
 import sys
 import time
@@ -325,11 +324,7 @@ def _solve(args):
         "solver": repr(solver),
         "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__, "python": sys.version.split()[0]},
     }
-    summary = io.save(out, prob, best, traj, inputs=inputs)
-    if args.monte_carlo:
-        summary["monte_carlo"] = summary_mc
-        text = json.dumps(summary, indent=2).encode()
-        io.atomic_write(os.path.join(out, "summary.json"), lambda f: f.write(text))
+    io.save(out, prob, best, traj, inputs=inputs, extra={"monte_carlo": summary_mc} if args.monte_carlo else None)
     written = ["summary.json", "arrays.npz"]
     if not args.no_plot:
         written += write_figures(

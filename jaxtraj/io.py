@@ -1,11 +1,15 @@
 """Result folders: `summary.json` (inputs, outputs, status) + `arrays.npz` (parameters,
 dense trajectory, history). Every file is written atomically (temporary file + rename), so an
-interrupted run never leaves a truncated file. `load(dir)` gives the Solution and Trajectory
-back, parameters bit for bit."""
+interrupted run never leaves a truncated file, and the summary, written last, carries the
+checksum of the arrays it belongs to. `load(dir)` gives the Solution and Trajectory back,
+parameters bit for bit, or a ValueError that names the damaged file."""
 
+import hashlib
 import json
+import math
 import os
 import tempfile
+import zipfile
 
 import jax.numpy as jnp
 import numpy as np
@@ -38,20 +42,41 @@ def atomic_write(path, write):
 
 
 def _jsonable(value):
+    """Plain JSON values: arrays to lists, NumPy scalars to Python, non-finite floats to None
+    (strict JSON has no NaN or Infinity)."""
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     if isinstance(value, (np.ndarray, jnp.ndarray)):
-        return np.asarray(value).tolist()
+        return _jsonable(np.asarray(value).tolist())
     if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return value.item()
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     return value
 
 
-def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None):
-    """Write `summary.json` and `arrays.npz` into `folder` (created if needed)."""
-    os.makedirs(folder, exist_ok=True)
+def _sha256(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra=None):
+    """Write `arrays.npz` and then `summary.json` into `folder` (created if needed).
+
+    Each file is written atomically; `summary.json` is written last and records the SHA-256
+    of `arrays.npz`, so `load` recognizes a pair from two different saves (an interrupted
+    save). The summary is strict JSON: a non-finite number is `null`, and its name is listed
+    under `"nonfinite"`. `extra`: more JSON-able entries for the summary (e.g. the CLI's
+    Monte Carlo results). Returns the summary (a dict).
+
+    **Raises:** `ValueError` naming the entry if `inputs` or `extra` cannot be written as
+    JSON (nothing is written then).
+    """
     n = int(sol.steps)
     arrays = {
         "params": np.asarray(sol.params),
@@ -64,64 +89,114 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None):
         **{f"history_{k}": np.asarray(getattr(sol.history, k))[:n] for k in _HISTORY_FIELDS},
         **{f"{_DETAIL}{k}": np.asarray(v)[:n] for k, v in sol.history.details.items()},
     }
-    atomic_write(os.path.join(folder, "arrays.npz"), lambda f: np.savez(f, **arrays))
-    summary = {
-        "problem": problem.name,
-        "inputs": _jsonable(inputs or {}),
-        "status": status_name(sol.status),
-        "message": Status[sol.status] or "converged",
+    outputs = {
         "tf": float(sol.tf),
         "objective": float(sol.objective),
         "max_constraint_error": float(sol.max_constraint_error),
-        "constraints": {name: float(e) for name, e in zip(problem.constraint_names, np.asarray(sol.constraints))},
         "projected_gradient": float(sol.projected_gradient),
+    }
+    if sol.max_path_constraint is not None:
+        outputs["max_path_constraint"] = float(sol.max_path_constraint)
+        outputs["max_path_time"] = float(sol.max_path_time)
+    summary = {
+        "problem": problem.name,
+        "inputs": inputs or {},
+        "status": status_name(sol.status),
+        "message": Status[sol.status] or "converged",
+        "trajectory_status": status_name(traj.status),
+        **outputs,
+        "constraints": {name: float(e) for name, e in zip(problem.constraint_names, np.asarray(sol.constraints))},
         "iterations": int(sol.iterations),
         "integrations": int(sol.integrations),
         "steps": n,
         "params": np.asarray(sol.params).tolist(),
+        "nonfinite": [k for k, v in outputs.items() if not math.isfinite(v)],
+        **(extra or {}),
     }
-    if sol.max_path_constraint is not None:
-        summary["max_path_constraint"] = float(sol.max_path_constraint)
-        summary["max_path_time"] = float(sol.max_path_time)
-    text = json.dumps(summary, indent=2).encode()
+    for key in ("inputs", *(extra or {})):
+        try:
+            json.dumps(_jsonable(summary[key]), allow_nan=False)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"`{key}` cannot be written as JSON: {e}") from None
+    os.makedirs(folder, exist_ok=True)
+    arrays_path = os.path.join(folder, "arrays.npz")
+    atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
+    summary["arrays_sha256"] = _sha256(arrays_path)
+    summary = _jsonable(summary)
+    text = json.dumps(summary, indent=2, allow_nan=False).encode()
     atomic_write(os.path.join(folder, "summary.json"), lambda f: f.write(text))
     return summary
 
 
+def _status(name, path, field):
+    if name not in STATUS_NAMES:
+        raise ValueError(f"{path}: `{field}` is {name!r}, not a jaxtraj status ({', '.join(STATUS_NAMES)}).")
+    return getattr(Status, name)
+
+
 def load(folder):
-    """`(Solution, Trajectory, summary)` from a folder written by `save` (or the CLI)."""
-    with open(os.path.join(folder, "summary.json")) as f:
-        summary = json.load(f)
-    with np.load(os.path.join(folder, "arrays.npz")) as data:
-        arrays = {k: data[k] for k in data.files}
-    status = getattr(Status, summary["status"]) if summary["status"] in STATUS_NAMES else Status.NONFINITE
+    """`(Solution, Trajectory, summary)` from a folder written by `save` (or the CLI),
+    parameters bit for bit and statuses as saved.
+
+    **Raises:** `ValueError` naming the file and what is wrong when a file is missing,
+    damaged, or `arrays.npz` does not belong to `summary.json`.
+    """
+    summary_path = os.path.join(folder, "summary.json")
+    arrays_path = os.path.join(folder, "arrays.npz")
+    for path in (summary_path, arrays_path):
+        if not os.path.isfile(path):
+            raise ValueError(f"{path}: missing (not a jaxtraj result folder, or an interrupted save).")
+    try:
+        with open(summary_path) as f:
+            summary = json.load(f)
+        if not isinstance(summary, dict):
+            raise ValueError("not a JSON object")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{summary_path}: damaged ({e}).") from None
+    expected = summary.get("arrays_sha256")
+    if expected is not None and _sha256(arrays_path) != expected:
+        raise ValueError(
+            f"{arrays_path}: does not belong to {summary_path} (checksum differs: another or an interrupted save)."
+        )
+    try:
+        with np.load(arrays_path) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{arrays_path}: damaged ({e}).") from None
+
+    def need(source, key, path):
+        if key not in source:
+            raise ValueError(f"{path}: `{key}` is missing.")
+        value = source[key]
+        return jnp.asarray(jnp.nan if value is None else value)
+
     history = History(
-        **{k: jnp.asarray(arrays[f"history_{k}"]) for k in _HISTORY_FIELDS},
+        **{k: need(arrays, f"history_{k}", arrays_path) for k in _HISTORY_FIELDS},
         details={k[len(_DETAIL) :]: jnp.asarray(v) for k, v in arrays.items() if k.startswith(_DETAIL)},
     )
     sol = Solution(
-        params=jnp.asarray(arrays["params"]),
-        tf=jnp.asarray(summary["tf"]),
-        objective=jnp.asarray(summary["objective"]),
-        constraints=jnp.asarray(arrays["constraints"]),
-        max_constraint_error=jnp.asarray(summary["max_constraint_error"]),
-        projected_gradient=jnp.asarray(summary["projected_gradient"]),
-        iterations=jnp.asarray(summary["iterations"]),
-        integrations=jnp.asarray(summary["integrations"]),
-        steps=jnp.asarray(summary["steps"]),
-        status=status,
+        params=need(arrays, "params", arrays_path),
+        tf=need(summary, "tf", summary_path),
+        objective=need(summary, "objective", summary_path),
+        constraints=need(arrays, "constraints", arrays_path),
+        max_constraint_error=need(summary, "max_constraint_error", summary_path),
+        projected_gradient=need(summary, "projected_gradient", summary_path),
+        iterations=need(summary, "iterations", summary_path),
+        integrations=need(summary, "integrations", summary_path),
+        steps=need(summary, "steps", summary_path),
+        status=_status(summary.get("status"), summary_path, "status"),
         history=history,
         max_path_constraint=None
         if "max_path_constraint" not in summary
-        else jnp.asarray(summary["max_path_constraint"]),
-        max_path_time=None if "max_path_time" not in summary else jnp.asarray(summary["max_path_time"]),
+        else need(summary, "max_path_constraint", summary_path),
+        max_path_time=None if "max_path_time" not in summary else need(summary, "max_path_time", summary_path),
     )
     traj = Trajectory(
-        t=jnp.asarray(arrays["t"]),
-        x=jnp.asarray(arrays["x"]),
-        u=jnp.asarray(arrays["u"]),
-        knots=jnp.asarray(arrays["knots"]),
-        xf=jnp.asarray(arrays["xf"]),
-        status=Status.SUCCESS,
+        t=need(arrays, "t", arrays_path),
+        x=need(arrays, "x", arrays_path),
+        u=need(arrays, "u", arrays_path),
+        knots=need(arrays, "knots", arrays_path),
+        xf=need(arrays, "xf", arrays_path),
+        status=_status(summary.get("trajectory_status", "SUCCESS"), summary_path, "trajectory_status"),
     )
     return sol, traj, summary
