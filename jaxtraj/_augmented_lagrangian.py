@@ -81,6 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kkt import multipliers
 from ._sensitivity import Evaluation, evaluate_restricted
@@ -372,30 +373,26 @@ class AugmentedLagrangian(AbstractSolver):
             return isinstance(v, int) and not isinstance(v, bool) and v >= low
 
         checks = {
-            "ctol": self.ctol > 0,
-            "gtol": self.gtol > 0,
-            "inner_tol_init": self.inner_tol_init > 0,
-            "inner_tol_shrink": 0 < self.inner_tol_shrink <= 1,
-            "max_inner": is_int(self.max_inner, 1),
-            "max_outer": is_int(self.max_outer, 1),
-            "penalty_init": self.penalty_init is None or self.penalty_init > 0,
-            "penalty_growth": self.penalty_growth > 1,
-            "feasibility_ratio": 0 < self.feasibility_ratio < 1,
-            "penalty_max": self.penalty_max > 0,
-            "multiplier_max": self.multiplier_max > 0,
-            "learning_rate": self.learning_rate > 0,
-            "memory_size": is_int(self.memory_size, 1),
-            "max_linesearch_steps": is_int(self.max_linesearch_steps, 1),
-            "min_duration": self.min_duration > 0,
-            "precondition": isinstance(self.precondition, bool),
-            "curvature": self.curvature > 0,
-            "max_step": self.max_step > 0,
+            "ctol": lambda: self.ctol > 0,
+            "gtol": lambda: self.gtol > 0,
+            "inner_tol_init": lambda: self.inner_tol_init > 0,
+            "inner_tol_shrink": lambda: 0 < self.inner_tol_shrink <= 1,
+            "max_inner": lambda: is_int(self.max_inner, 1),
+            "max_outer": lambda: is_int(self.max_outer, 1),
+            "penalty_init": lambda: self.penalty_init is None or self.penalty_init > 0,
+            "penalty_growth": lambda: self.penalty_growth > 1,
+            "feasibility_ratio": lambda: 0 < self.feasibility_ratio < 1,
+            "penalty_max": lambda: self.penalty_max > 0,
+            "multiplier_max": lambda: self.multiplier_max > 0,
+            "learning_rate": lambda: self.learning_rate > 0,
+            "memory_size": lambda: is_int(self.memory_size, 1),
+            "max_linesearch_steps": lambda: is_int(self.max_linesearch_steps, 1),
+            "min_duration": lambda: self.min_duration > 0,
+            "precondition": lambda: isinstance(self.precondition, bool),
+            "curvature": lambda: self.curvature > 0,
+            "max_step": lambda: self.max_step > 0,
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(
-                    f"AugmentedLagrangian: invalid `{name}` = {getattr(self, name)!r} (see the field docs)."
-                )
+        check_settings("AugmentedLagrangian", self, checks)
 
     # ------------------------------------------------------------------ pieces
 

@@ -17,6 +17,19 @@ def require_float64():
         )
 
 
+def check_settings(owner: str, obj, rules: dict):
+    """Raise a ValueError naming `owner` and the field for the first rule (field name ->
+    callable returning bool) that fails or cannot be evaluated (a wrong type, e.g. a string
+    tolerance)."""
+    for name, rule in rules.items():
+        try:
+            ok = bool(rule())
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{owner}: invalid `{name}` = {getattr(obj, name)!r} (see the field docs).")
+
+
 def as_float64(x):
     """`x` as a float64 array, after `require_float64`."""
     require_float64()

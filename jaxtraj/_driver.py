@@ -11,6 +11,7 @@ import abc
 
 import equinox as eqx
 import jax
+import numpy as np
 from jax import lax
 
 from ._solution import History, Solution
@@ -87,6 +88,9 @@ def run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
 
 
 def check_max_steps(max_steps):
-    """Raise a ValueError naming `max_steps` unless it is an int >= 1."""
-    if not (isinstance(max_steps, int) and max_steps >= 1):
+    """`max_steps` as a Python int (NumPy integers accepted), or a ValueError naming it."""
+    if isinstance(max_steps, np.integer):
+        max_steps = int(max_steps)
+    if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
         raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
+    return max_steps

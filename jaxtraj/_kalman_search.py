@@ -64,6 +64,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import active_rows, constraint_rows, path_rows, projected_gradient
@@ -172,24 +173,22 @@ class KalmanSearch(AbstractSolver):
 
     def __check_init__(self):
         checks = {
-            "rho": self.rho > 0,
-            "beta": self.beta > 0,
-            "beta_p": self.beta_p >= 1,
-            "beta_0": self.beta_0 >= self.beta,
-            "beta_p0": self.beta_p0 >= self.beta_p,
-            "e_m": self.e_m > 0,
-            "e_a": self.e_a > 0,
-            "e_a_start": self.e_a_start >= self.e_a,
-            "e_a_shrink": self.e_a_shrink > 1,
-            "f_ea": self.f_ea >= 1,
-            "a_t": self.a_t >= 1,
-            "linearity_ratio": 0 < self.linearity_ratio < 1,
-            "min_shrink": 0 < self.min_shrink < 1,
-            "gap_keep": 0 < self.gap_keep < 1,
+            "rho": lambda: self.rho > 0,
+            "beta": lambda: self.beta > 0,
+            "beta_p": lambda: self.beta_p >= 1,
+            "beta_0": lambda: self.beta_0 >= self.beta,
+            "beta_p0": lambda: self.beta_p0 >= self.beta_p,
+            "e_m": lambda: self.e_m > 0,
+            "e_a": lambda: self.e_a > 0,
+            "e_a_start": lambda: self.e_a_start >= self.e_a,
+            "e_a_shrink": lambda: self.e_a_shrink > 1,
+            "f_ea": lambda: self.f_ea >= 1,
+            "a_t": lambda: self.a_t >= 1,
+            "linearity_ratio": lambda: 0 < self.linearity_ratio < 1,
+            "min_shrink": lambda: 0 < self.min_shrink < 1,
+            "gap_keep": lambda: 0 < self.gap_keep < 1,
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"KalmanSearch: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+        check_settings("KalmanSearch", self, checks)
         if self.method not in ("forward", "unit"):
             raise ValueError(f"KalmanSearch: `method` must be 'forward' or 'unit'; got {self.method!r}.")
 

@@ -52,6 +52,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import (
@@ -174,18 +175,16 @@ class KalmanSQP(AbstractSolver):
         if self.hessian == "exact" and self.method != "forward":
             raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
         checks = {
-            "ctol": self.ctol > 0,
-            "gtol": self.gtol > 0,
-            "acceptable_gtol": self.acceptable_gtol >= self.gtol,
-            "a_t": self.a_t >= 1,
-            "min_curvature": 0 < self.min_curvature < 1,
-            "r_rel": 0 < self.r_rel < 1,
-            "path_dependence": 0 < self.path_dependence < 1,
-            "exact_iterations": isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
+            "ctol": lambda: self.ctol > 0,
+            "gtol": lambda: self.gtol > 0,
+            "acceptable_gtol": lambda: self.acceptable_gtol >= self.gtol,
+            "a_t": lambda: self.a_t >= 1,
+            "min_curvature": lambda: 0 < self.min_curvature < 1,
+            "r_rel": lambda: 0 < self.r_rel < 1,
+            "path_dependence": lambda: 0 < self.path_dependence < 1,
+            "exact_iterations": lambda: isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"KalmanSQP: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+        check_settings("KalmanSQP", self, checks)
 
     # ------------------------------------------------------------------ evaluations
 

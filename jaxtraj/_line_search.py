@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._checks import check_settings
 from ._kkt import (
     active_rows,
     kkt_outcome,
@@ -144,15 +145,13 @@ class LineSearch(eqx.Module):
 
     def __check_init__(self):
         checks = {
-            "radius": self.radius > 0,
-            "armijo": 0 < self.armijo < 0.5,
-            "min_step": 0 < self.min_step < 1,
-            "mu_max": self.mu_max > 0,
-            "flat_steps": isinstance(self.flat_steps, int) and self.flat_steps >= 1,
+            "radius": lambda: self.radius > 0,
+            "armijo": lambda: 0 < self.armijo < 0.5,
+            "min_step": lambda: 0 < self.min_step < 1,
+            "mu_max": lambda: self.mu_max > 0,
+            "flat_steps": lambda: isinstance(self.flat_steps, int) and self.flat_steps >= 1,
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"LineSearch: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+        check_settings("LineSearch", self, checks)
 
     def start(self, sqp, ev, lam, mu, B, d, lam_qp):
         """Penalty update and the merit's value and slope at alpha = 0."""

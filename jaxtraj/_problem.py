@@ -107,17 +107,24 @@ class Problem(eqx.Module):
         self.dynamics = dynamics
         self.x0 = jnp.asarray(x0)
         self.terminal = terminal
-        self.constraint_names = tuple(str(c) for c in constraint_names)
+        self.constraint_names = _names(constraint_names, "constraint_names")
         self.num_controls = num_controls
         self.objective = objective
         self.args = args
         n = x0.size
-        self.state_names = tuple(state_names) if state_names else tuple(f"x{i + 1}" for i in range(n))
-        self.control_names = tuple(control_names) if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
+        self.state_names = _names(state_names, "state_names") if state_names else tuple(f"x{i + 1}" for i in range(n))
+        self.control_names = (
+            _names(control_names, "control_names") if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
+        )
         self.control_lower = None if control_lower is None else _bound(control_lower, num_controls, "control_lower")
         self.control_upper = None if control_upper is None else _bound(control_upper, num_controls, "control_upper")
+        lo, hi = self.control_lower, self.control_upper
+        if lo is not None and hi is not None and np.any(np.asarray(lo) > np.asarray(hi)):
+            raise ValueError(
+                f"`control_lower` must be <= `control_upper` in every channel; got {np.asarray(lo)} > {np.asarray(hi)}."
+            )
         self.path = path
-        self.path_names = tuple(path_names)
+        self.path_names = _names(path_names, "path_names")
         if not isinstance(name, str):
             raise ValueError(f"`name` must be a str; got {type(name).__name__}.")
         self._label = _Label(name)
@@ -183,7 +190,24 @@ class _Label:
 
 
 def _bound(value, nu, name):
-    b = np.broadcast_to(np.asarray(value, dtype=np.float64), (nu,))
+    """A control bound as a float64 `(nu,)` array (a scalar applies to every channel)."""
+    try:
+        b = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number or {nu} numbers; got {value!r}.") from None
+    if b.ndim > 1 or (b.ndim == 1 and b.shape[0] not in (1, nu)):
+        raise ValueError(f"`{name}` must be a scalar or have {nu} entries (num_controls); got shape {b.shape}.")
+    b = np.broadcast_to(b, (nu,))
     if np.any(np.isnan(b)):
         raise ValueError(f"`{name}` must not contain NaN; got {b}.")
     return jnp.asarray(b)
+
+
+def _names(value, name):
+    """A tuple of str; a lone string is refused (it would become one name per character)."""
+    if isinstance(value, str):
+        raise ValueError(f"`{name}` must be a sequence of names, not one string; got {value!r} (write ({value!r},)).")
+    names = tuple(value)
+    if not all(isinstance(v, str) for v in names):
+        raise ValueError(f"`{name}` must contain strings; got {names!r}.")
+    return names

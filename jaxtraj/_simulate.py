@@ -84,7 +84,7 @@ class RK4(AbstractSimulator):
     discrete map (forward-mode autodiff through the scan).
     """
 
-    steps: int = 100
+    steps: int = eqx.field(default=100, converter=lambda v: int(v) if isinstance(v, np.integer) else v)
 
     def __check_init__(self):
         if not (isinstance(self.steps, int) and not isinstance(self.steps, bool) and self.steps >= 1):

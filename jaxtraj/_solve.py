@@ -10,13 +10,13 @@ from .controls import AbstractControl
 
 
 def check_solver(solver, max_steps):
-    """The solver to use (default `jt.KalmanSQP()`), after checking it and `max_steps`."""
+    """`(solver, max_steps)`: the solver to use (default `jt.KalmanSQP()`) and the step limit
+    as an int, after checking both."""
     if solver is None:
         solver = KalmanSQP()
     if not isinstance(solver, AbstractSolver):
         raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
-    check_max_steps(max_steps)
-    return solver
+    return solver, check_max_steps(max_steps)
 
 
 def solve(
@@ -47,7 +47,7 @@ def solve(
 
     **Raises:** `ValueError` for bad input (outside jit).
     """
-    solver = check_solver(solver, max_steps)
+    solver, max_steps = check_solver(solver, max_steps)
     a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     if not (isinstance(progress, int) and progress >= 0):

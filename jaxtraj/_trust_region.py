@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._checks import check_settings
 from ._kalman import sequential_update
 from ._kkt import kkt_outcome, lagrangian_gradient, least_squares_multipliers, projected_gradient
 from ._sensitivity import Evaluation, evaluate_restricted
@@ -327,14 +328,12 @@ class TrustRegion(eqx.Module):
 
     def __check_init__(self):
         checks = {
-            "radius": self.radius > 0,
-            "zeta": 0 < self.zeta < 1,
-            "gap_floor": 0 < self.gap_floor < 1,
-            "eta": 0 < self.eta < 0.25,
+            "radius": lambda: self.radius > 0,
+            "zeta": lambda: 0 < self.zeta < 1,
+            "gap_floor": lambda: 0 < self.gap_floor < 1,
+            "eta": lambda: 0 < self.eta < 0.25,
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"TrustRegion: invalid `{name}` = {getattr(self, name)!r} (see the field docs).")
+        check_settings("TrustRegion", self, checks)
 
     def init(self, sqp, problem, control, a0, simulator, max_steps):
         return _init(self, sqp, problem, control, a0, simulator, max_steps)

@@ -120,8 +120,8 @@ class AbstractControl(eqx.Module):
         """
         name = type(self).__name__
         arr = np.asarray(a)
-        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
-            raise ValueError(f"`a` must be a numeric array for {self!r}; got dtype {arr.dtype}.")
+        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+            raise ValueError(f"`a` must be a real numeric array for {self!r}; got dtype {arr.dtype}.")
         arr = arr.astype(np.float64)
         if arr.shape != (self.num_params,):
             raise ValueError(f"`a` must have shape ({self.num_params},) for {self!r}; got shape {arr.shape}.")

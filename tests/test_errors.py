@@ -132,3 +132,64 @@ def test_constant_parameters_closed_over_by_jit():
     bad = a0.at[0].set(jnp.nan)
     with pytest.raises(ValueError, match="finite"):
         jax.jit(lambda: jt.simulate(prob, ctrl, bad).xf)()
+
+
+def _energy_problem(**kwargs):
+    base = jt.problems.analytic.min_energy_double_integrator()
+    fields = dict(objective=base.objective, args=base.args)
+    return jt.Problem(
+        base.dynamics, base.x0, base.terminal, kwargs.pop("names", base.constraint_names), **fields, **kwargs
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"control_lower": 1.0, "control_upper": -1.0}, r"`control_lower` must be <= `control_upper`"),
+        ({"control_upper": [1.0, 2.0]}, r"`control_upper` must be a scalar or have 1 entries .*got shape \(2,\)"),
+        ({"control_lower": "low"}, r"`control_lower` must be a number"),
+        ({"names": "abc"}, r"`constraint_names` must be a sequence of names, not one string"),
+        ({"names": ("a", "b", 3)}, r"`constraint_names` must contain strings"),
+        ({"state_names": "xyz"}, r"`state_names` must be a sequence of names"),
+    ],
+)
+def test_problem_arguments_are_checked(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        _energy_problem(**kwargs)
+
+
+def test_complex_parameters_are_refused():
+    ctrl = C.PiecewiseLinear(3)
+    a = np.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)) + 0j
+    with pytest.raises(ValueError, match="`a` must be a real numeric array"):
+        jt.simulate(_energy_problem(), ctrl, a)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: jt.KalmanSQP(ctol="1e-8"),
+        lambda: jt.KalmanSearch(rho="fast"),
+        lambda: jt.AugmentedLagrangian(gtol=None),
+        lambda: jt.LineSearch(armijo="small"),
+        lambda: jt.TrustRegion(eta=[1e-4]),
+    ],
+)
+def test_a_setting_of_the_wrong_type_names_the_field(make):
+    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta)`"):
+        make()
+
+
+def test_numpy_integers_count_as_ints():
+    """`max_steps` and `RK4(steps)` take NumPy integers (e.g. from an array of settings) and
+    give what Python ints give."""
+    prob, ctrl = _energy_problem(), C.PiecewiseLinear(3)
+    a0 = ctrl.initial_guess(1.2, 0.0, 0.0)
+    assert jt.RK4(np.int64(4)) == jt.RK4(4)
+    one = jt.solve(prob, ctrl, a0, jt.KalmanSearch(), simulator=jt.RK4(np.int64(4)), max_steps=np.int64(3))
+    two = jt.solve(prob, ctrl, a0, jt.KalmanSearch(), simulator=jt.RK4(4), max_steps=3)
+    assert int(one.steps) == int(two.steps) <= 3
+    np.testing.assert_array_equal(one.params, two.params)
+    for bad in (0, 2.0, True, np.float64(3.0)):
+        with pytest.raises(ValueError, match="`max_steps` must be an int >= 1"):
+            jt.solve(prob, ctrl, a0, max_steps=bad)

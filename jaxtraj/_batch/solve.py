@@ -99,7 +99,7 @@ def solve_batch(
     **Raises:** `ValueError` for bad arguments (outside jit), or when `out` holds a run with
     other inputs (`resume=True`) or any run (`resume=False`).
     """
-    solver = check_solver(solver, max_steps)
+    solver, max_steps = check_solver(solver, max_steps)
     check_problem_and_control(problem, control)
     check_simulator(simulator)
     a0s = _check_a0s(control, a0s)
