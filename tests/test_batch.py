@@ -450,3 +450,36 @@ def test_import_sets_the_xla_cpu_option_xla_accepts():
         value, flags = proc.stdout.split("\n")[:2]
         assert float(value) == pytest.approx(np.sin(1.0) + np.sin(2.0), rel=1e-15)
         assert ("xla_cpu_small_while_loop_byte_threshold=1000000" in flags) is not off
+
+
+def test_resume_refuses_foreign_or_damaged_chunks(tmp_path):
+    """Every chunk file carries its run's identity, its index and a checksum: a resume
+    refuses, naming the file, a chunk copied over another, one left from another run (the
+    manifest lost and the run restarted with other starts), a damaged one, and a damaged
+    manifest."""
+    import shutil
+
+    out = tmp_path / "run"
+    solve_batch(PROB, CTRL, STARTS, SOLVER, out=str(out), progress=False, **KW)
+    assert sorted(os.listdir(out)) == ["chunk_00000.npz", "chunk_00001.npz", "manifest.json"]
+    resumed = solve_batch(PROB, CTRL, STARTS, SOLVER, out=str(out), resume=True, progress=False, **KW)
+    assert int(resumed.steps[0]) > 0  # the intact folder loads
+
+    def damaged(name, damage):
+        folder = tmp_path / name
+        shutil.copytree(out, folder)
+        damage(folder)
+        return str(folder)
+
+    copied = damaged("copied", lambda d: shutil.copy(d / "chunk_00000.npz", d / "chunk_00001.npz"))
+    with pytest.raises(ValueError, match=r"chunk_00001\.npz holds chunk 0, not chunk 1"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=copied, resume=True, progress=False, **KW)
+    lost = damaged("lost", lambda d: (d / "manifest.json").unlink())
+    with pytest.raises(ValueError, match=r"chunk_00000\.npz belongs to another run"):
+        solve_batch(PROB, CTRL, STARTS * 1.01, SOLVER, out=lost, resume=True, progress=False, **KW)
+    cut = damaged("cut", lambda d: (d / "chunk_00001.npz").write_bytes((d / "chunk_00001.npz").read_bytes()[:300]))
+    with pytest.raises(ValueError, match=r"chunk_00001\.npz is damaged"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=cut, resume=True, progress=False, **KW)
+    bad_manifest = damaged("manifest", lambda d: (d / "manifest.json").write_text('{"format": '))
+    with pytest.raises(ValueError, match=r"manifest\.json is damaged"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=bad_manifest, resume=True, progress=False, **KW)

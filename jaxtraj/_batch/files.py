@@ -5,6 +5,7 @@ import hashlib
 import json
 import os
 import re
+import zipfile
 
 import jax
 import numpy as np
@@ -36,19 +37,50 @@ def chunk_path(out, k):
     return os.path.join(out, f"chunk_{k:05d}.npz")
 
 
-def write_chunk(out, k, leaves):
+def run_id(manifest) -> str:
+    """The identity of a run: SHA-256 of its manifest (without the description)."""
+    body = {k: v for k, v in manifest.items() if k != "description"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def _leaves_sha256(leaves):
+    h = hashlib.sha256()
+    for x in leaves:
+        x = np.ascontiguousarray(x)
+        h.update(f"{x.dtype.str}{x.shape}".encode())
+        h.update(x.tobytes())
+    return h.hexdigest()
+
+
+def write_chunk(out, k, leaves, run):
+    """Chunk `k` of the run `run` (`run_id`): the solution leaves, the run's identity, the
+    chunk's index and a checksum of the leaves, written atomically."""
     arrays = {f"leaf_{i:03d}": x for i, x in enumerate(leaves)}
-    _io.atomic_write(chunk_path(out, k), lambda f: np.savez(f, **arrays))
+    meta = {"run": np.asarray(run), "index": np.asarray(k), "sha256": np.asarray(_leaves_sha256(leaves))}
+    _io.atomic_write(chunk_path(out, k), lambda f: np.savez(f, **arrays, **meta))
 
 
-def read_chunk(out, k, rows, spec):
+def read_chunk(out, k, rows, spec, run):
+    """The leaves of chunk `k`, after checking that the file belongs to this run (`run`), is
+    chunk `k`, and is whole (checksum, layout); else a one-line ValueError naming the file."""
     path = chunk_path(out, k)
-    with np.load(path) as data:
-        leaves = [data[f"leaf_{i:03d}"] for i in range(len(spec))] if len(data.files) == len(spec) else None
-    if leaves is None or any(x.shape != (rows, *s) or x.dtype != d for x, (s, d) in zip(leaves, spec)):
-        raise ValueError(
-            f"`out`: {path} does not hold {rows} solutions of this batch's layout; delete it to recompute it."
-        )
+    fix = "delete it to recompute that chunk"
+    try:
+        with np.load(path) as data:
+            files = set(data.files)
+            meta = {key: str(data[key]) for key in ("run", "index", "sha256") if key in files}
+            leaves = [data[f"leaf_{i:03d}"] for i in range(len(spec)) if f"leaf_{i:03d}" in files]
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"`out`: {path} is damaged ({type(e).__name__}: {e}); {fix}.") from None
+    if meta.get("run") != run:
+        raise ValueError(f"`out`: {path} belongs to another run (not this manifest's); {fix}.")
+    if meta.get("index") != str(k):
+        raise ValueError(f"`out`: {path} holds chunk {meta.get('index')}, not chunk {k} (a copied file?); {fix}.")
+    layout_ok = len(leaves) == len(spec) and all(
+        x.shape == (rows, *s) and x.dtype == d for x, (s, d) in zip(leaves, spec)
+    )
+    if not layout_ok or meta.get("sha256") != _leaves_sha256(leaves):
+        raise ValueError(f"`out`: {path} is damaged (its solutions do not match their checksum or layout); {fix}.")
     return leaves
 
 
@@ -64,8 +96,13 @@ def prepare_out(out, manifest, resume, writer):
                     "continue it, or choose another folder."
                 )
             return
-        with open(path) as f:
-            old = json.load(f)
+        try:
+            with open(path) as f:
+                old = json.load(f)
+            if not isinstance(old, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ValueError(f"`out`: {path} is damaged ({e}); delete the folder to start the run anew.") from None
         diff = [k for k in manifest if k != "description" and old.get(k) != manifest[k]]
         if diff:
             details = "; ".join(f"{k}: on disk {old.get(k)!r}, now {manifest[k]!r}" for k in diff)

@@ -17,7 +17,7 @@ from .._solution import Solution
 from .._solve import check_solver
 from .._status import Status
 from ..controls import AbstractControl
-from .files import FORMAT, chunk_path, fingerprint, prepare_out, read_chunk, write_chunk
+from .files import FORMAT, chunk_path, fingerprint, prepare_out, read_chunk, run_id, write_chunk
 from .lanes import AXIS, solve_chunk, template, to_global, to_host
 
 
@@ -136,6 +136,7 @@ def solve_batch(
             f"max_steps={max_steps}",
         }
         prepare_out(out, manifest, resume, writer)
+        run = run_id(manifest)
 
     on_disk = {k for k in range(num_chunks) if resume and os.path.exists(chunk_path(out, k))}
     # the layout of one start's Solution: traced only if a chunk must be read (else taken
@@ -158,7 +159,7 @@ def solve_batch(
     for k in range(num_chunks):
         lo, hi = k * chunk, min((k + 1) * chunk, n)
         if k in on_disk:
-            leaves = read_chunk(out, k, hi - lo, spec)
+            leaves = read_chunk(out, k, hi - lo, spec, run)
         else:
             rows = np.full((padded, control.num_params), np.nan)  # NaN padding ends at once
             rows[: hi - lo] = a0s[lo:hi]
@@ -168,7 +169,7 @@ def solve_batch(
             leaves = [x[: hi - lo] for x in to_host(sols)]
             treedef = jax.tree.structure(sols)
             if out is not None and writer:
-                write_chunk(out, k, leaves)
+                write_chunk(out, k, leaves, run)
             solved += hi - lo
         if results is None:
             results = [np.empty((n, *x.shape[1:]), x.dtype) for x in leaves]
