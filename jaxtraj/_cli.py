@@ -71,9 +71,16 @@ def _parser():
     return p
 
 
-def _positive(name, value):
+#: Upper limits of the size options, checked before anything is allocated (beyond them
+#: memory or compile time explode; a larger study belongs in Python with jt.solve_batch).
+LIMITS = {"starts": 1_000_000, "steps": 10_000, "max_steps": 1_000_000, "segments": 1_000}
+
+
+def _positive(name, value, limit=None):
     if value < 1:
         raise _UsageError(f"{name} must be >= 1; got {value}")
+    if limit is not None and value > limit:
+        raise _UsageError(f"{name} must be <= {limit:,}; got {value:,}")
 
 
 def parse_control(spec):
@@ -98,6 +105,8 @@ def parse_control(spec):
     count, make = makers[kind]
     if len(nums) != count:
         raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}")
+    if isinstance(nums[0], int) and nums[0] > LIMITS["segments"]:
+        raise _UsageError(f"control spec {spec!r}: at most {LIMITS['segments']:,} segments; got {nums[0]:,}")
     try:
         return make(*nums)
     except ValueError as e:
@@ -225,7 +234,10 @@ def _solve(args):
     if args.monte_carlo and args.problem != "earth-mars":
         raise _UsageError("--monte-carlo needs thrust errors: earth-mars only")
     for name in ("starts", "steps", "max_steps"):
-        _positive(f"--{name.replace('_', '-')}", getattr(args, name))
+        _positive(f"--{name.replace('_', '-')}", getattr(args, name), LIMITS[name])
+    for name in ("out", "control"):
+        if getattr(args, name) == "":
+            raise _UsageError(f"--{name} must not be empty")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     out = args.out or os.path.join("results", f"{args.problem}-{stamp}")
     _check_out(out)
@@ -260,18 +272,23 @@ def _solve(args):
         # --resume can pick an interrupted run up
         starts = np.array(jt.random_starts(prob, ctrl, jax.random.key(args.seed), args.starts, around=a0, spread=0.05))
         starts[0] = np.asarray(a0)
-        sols = jt.solve_batch(
-            prob,
-            ctrl,
-            starts,
-            solver,
-            simulator=sim,
-            max_steps=args.max_steps,
-            chunk_size=-(-args.starts // 10),
-            out=os.path.join(out, "batch"),
-            resume=args.resume,
-            history=False,
-        )
+        try:
+            sols = jt.solve_batch(
+                prob,
+                ctrl,
+                starts,
+                solver,
+                simulator=sim,
+                max_steps=args.max_steps,
+                chunk_size=-(-args.starts // 10),
+                out=os.path.join(out, "batch"),
+                resume=args.resume,
+                history=False,
+            )
+        except ValueError as e:  # the batch folder: another run, changed inputs, a damaged file
+            message = str(e).splitlines()[0]
+            message = message.replace("pass resume=True", "pass --resume").replace("`resume`", "--resume")
+            raise _UsageError(message.replace("`out`", "--out")) from None
         ok = np.asarray(sols.status == jt.Status.SUCCESS)
         start = starts[int(np.argmin(np.where(ok, np.asarray(sols.objective), np.inf))) if ok.any() else 0]
         print(

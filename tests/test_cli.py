@@ -60,6 +60,10 @@ def test_problems_lists_the_problems(tmp_path):
         (("solve", "earth-mars", "--case", "9"), "--case must be in 1..7; got 9"),
         (("solve", "earth-mars", "--solver", "magic"), "unknown solver 'magic'"),
         (("frobnicate",), "invalid choice"),
+        (("solve", "earth-mars", "--starts", "2000000000"), "--starts must be <= 1,000,000; got 2,000,000,000"),
+        (("solve", "earth-mars", "--control", "linear:100000"), "at most 1,000 segments; got 100,000"),
+        (("solve", "earth-mars", "--max-steps", "10000000000"), "--max-steps must be <= 1,000,000"),
+        (("solve", "earth-mars", "--control", ""), "--control must not be empty"),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message, tmp_path):
@@ -72,6 +76,11 @@ def test_bad_input_gives_one_line_error(args, message, tmp_path):
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("jaxtraj: error:") and message in lines[0], r.stderr
+
+
+def test_empty_out_is_refused(tmp_path):
+    r = run("solve", "earth-mars", "--out", "", tmp_path=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --out must not be empty", r.stderr
 
 
 def test_unwritable_out(tmp_path):
@@ -141,6 +150,19 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and summary["inputs"]["starts"] == 3
     assert abs(summary["objective"] - 6.0) < 1e-6  # analytic optimum of the min-energy problem
+    # user errors about the batch folder are one line with exit 2, never a traceback
+    same = ("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--steps", "4", "--no-plot")
+    cases = [
+        ((*same, "--seed", "2", "--out", str(out)), "already holds a batch run (manifest.json); pass --resume"),
+        ((*same, "--seed", "3", "--out", str(out), "--resume"), "was started with different inputs (a0s_sha256"),
+    ]
+    (out / "batch" / "chunk_00001.npz").write_bytes(b"")
+    cases.append(((*same, "--seed", "2", "--out", str(out), "--resume"), "chunk_00001.npz is damaged"))
+    for argv, message in cases:
+        r = run(*argv, tmp_path=tmp_path)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert lines[-1].startswith("jaxtraj: error:") and message in lines[-1], r.stderr
 
 
 @pytest.mark.parametrize("solver", ["sqp", "sqp-tr"])
