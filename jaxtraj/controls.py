@@ -165,6 +165,16 @@ def value_bounds(control: AbstractControl, lower=None, upper=None):
     return np.asarray(idx, int), lo[channel], hi[channel]
 
 
+def _knots_or_final_time(free_times):
+    return "knots" if free_times else "final_time"
+
+
+def _values_but_times(control):
+    """Every entry but the times is a value of the single control channel."""
+    idx = tuple(i for i in range(control.num_params) if i not in set(control.time_indices))
+    return idx, (0,) * len(idx)
+
+
 def _check_segments(segments, name="segments"):
     if not (isinstance(segments, int) and not isinstance(segments, bool) and segments >= 1):
         raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
@@ -202,12 +212,11 @@ class PiecewiseLinear(AbstractControl):
 
     @property
     def time_layout(self):
-        return "knots" if self.free_times else "final_time"
+        return _knots_or_final_time(self.free_times)
 
     @property
     def value_indices(self):
-        idx = tuple(i for i in range(self.num_params) if i not in set(self.time_indices))
-        return idx, (0,) * len(idx)
+        return _values_but_times(self)
 
     @property
     def num_segments(self):
@@ -296,7 +305,7 @@ class PiecewiseParabolic(AbstractControl):
 
     @property
     def time_layout(self):
-        return "knots" if self.free_times else "final_time"
+        return _knots_or_final_time(self.free_times)
 
     @property
     def value_indices(self):
@@ -367,12 +376,11 @@ class PiecewiseConstant(AbstractControl):
 
     @property
     def time_layout(self):
-        return "knots" if self.free_times else "final_time"
+        return _knots_or_final_time(self.free_times)
 
     @property
     def value_indices(self):
-        idx = tuple(i for i in range(self.num_params) if i not in set(self.time_indices))
-        return idx, (0,) * len(idx)
+        return _values_but_times(self)
 
     @property
     def num_segments(self):

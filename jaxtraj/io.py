@@ -128,6 +128,19 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     return summary
 
 
+def read_json(path) -> dict:
+    """The JSON object in `path`, or a ValueError naming the file ("damaged") when it is not
+    one (truncated, empty, not an object)."""
+    try:
+        with open(path) as f:
+            value = json.load(f)
+        if not isinstance(value, dict):
+            raise ValueError("not a JSON object")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: damaged ({e}).") from None
+    return value
+
+
 def _status(name, path, field):
     if name not in STATUS_NAMES:
         raise ValueError(f"{path}: `{field}` is {name!r}, not a jaxtraj status ({', '.join(STATUS_NAMES)}).")
@@ -146,13 +159,7 @@ def load(folder):
     for path in (summary_path, arrays_path):
         if not os.path.isfile(path):
             raise ValueError(f"{path}: missing (not a jaxtraj result folder, or an interrupted save).")
-    try:
-        with open(summary_path) as f:
-            summary = json.load(f)
-        if not isinstance(summary, dict):
-            raise ValueError("not a JSON object")
-    except (ValueError, UnicodeDecodeError) as e:
-        raise ValueError(f"{summary_path}: damaged ({e}).") from None
+    summary = read_json(summary_path)
     expected = summary.get("arrays_sha256")
     if expected is not None and _sha256(arrays_path) != expected:
         raise ValueError(

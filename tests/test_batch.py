@@ -481,5 +481,5 @@ def test_resume_refuses_foreign_or_damaged_chunks(tmp_path):
     with pytest.raises(ValueError, match=r"chunk_00001\.npz is damaged"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=cut, resume=True, progress=False, **KW)
     bad_manifest = damaged("manifest", lambda d: (d / "manifest.json").write_text('{"format": '))
-    with pytest.raises(ValueError, match=r"manifest\.json is damaged"):
+    with pytest.raises(ValueError, match=r"manifest\.json: damaged"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=bad_manifest, resume=True, progress=False, **KW)

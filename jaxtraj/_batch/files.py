@@ -97,12 +97,9 @@ def prepare_out(out, manifest, resume, writer):
                 )
             return
         try:
-            with open(path) as f:
-                old = json.load(f)
-            if not isinstance(old, dict):
-                raise ValueError("not a JSON object")
-        except (ValueError, UnicodeDecodeError) as e:
-            raise ValueError(f"`out`: {path} is damaged ({e}); delete the folder to start the run anew.") from None
+            old = _io.read_json(path)
+        except ValueError as e:
+            raise ValueError(f"`out`: {e} Delete the folder to start the run anew.") from None
         diff = [k for k in manifest if k != "description" and old.get(k) != manifest[k]]
         if diff:
             details = "; ".join(f"{k}: on disk {old.get(k)!r}, now {manifest[k]!r}" for k in diff)
