@@ -59,7 +59,8 @@ t_k <- max(t_k, t_{k-1} + min_duration) (a cumulative max), and durations are ke
 the inner minimizer is the *reduced* gradient (components at a bound whose descent direction
 leaves the box are zeroed), so the search treats such a bound as binding; the convergence
 measures use the same reduced gradient. A family with no control-value parameters and no
-limits of its own cannot take declared control bounds: the solver raises a ValueError.
+limits of its own inside the declared control bounds cannot honor them: the solver raises a
+ValueError.
 
 **Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
 reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones)
@@ -87,7 +88,7 @@ from ._kkt import multipliers
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._status import Status
-from .controls import value_bounds
+from .controls import saturates_within, value_bounds
 
 # ------------------------------------------------------------------------------------------
 # The parameter box
@@ -143,10 +144,11 @@ def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
     upper = jnp.full(n, jnp.inf)
     bounded = problem.control_lower is not None or problem.control_upper is not None
     idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
-    if bounded and not idx.size and control.limits is None:
+    if bounded and not idx.size and not saturates_within(control, problem.control_lower, problem.control_upper):
         raise ValueError(
             f"`control`: {type(control).__name__} declares no control-value parameters "
-            "(`value_indices`), so AugmentedLagrangian cannot honor the problem's control_lower/control_upper."
+            "(`value_indices`) and does not saturate within the bounds, so AugmentedLagrangian "
+            "cannot honor the problem's control_lower/control_upper."
         )
     if idx.size:
         lower, upper = lower.at[idx].set(lo), upper.at[idx].set(hi)

@@ -151,6 +151,20 @@ class AbstractControl(eqx.Module):
             )
 
 
+def saturates_within(control: AbstractControl, lower=None, upper=None) -> bool:
+    """Whether the family's own `limits` keep u within `lower`/`upper` (a problem's control
+    bounds; None: unbounded). False for traced bounds (not decidable at trace time)."""
+    if control.limits is None:
+        return False
+    try:
+        lo, hi = (np.asarray(x) for x in control.limits)
+        inside_lo = lower is None or np.all(lo >= np.asarray(lower))
+        inside_hi = upper is None or np.all(hi <= np.asarray(upper))
+    except jax.errors.TracerArrayConversionError:
+        return False
+    return bool(inside_lo and inside_hi)
+
+
 def value_bounds(control: AbstractControl, lower=None, upper=None):
     """`(indices, lo, hi)`: the entries of `a` that are control values (`value_indices`) and
     their bounds, from `lower`/`upper` `(num_controls,)` (a problem's control bounds; None:
@@ -582,6 +596,7 @@ __all__ = [
     "PiecewiseLinear",
     "PiecewiseParabolic",
     "SaturatedSpline",
+    "saturates_within",
     "spline_kernel",
     "value_bounds",
 ]

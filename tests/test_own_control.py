@@ -159,3 +159,15 @@ def test_declared_bounds_are_honored():
 
     with pytest.raises(ValueError, match="value_indices"):
         jt.solve(prob, NoValues(2), A0, jt.AugmentedLagrangian(), simulator=SIM, max_steps=10)
+
+    # nor can one whose own saturation limits are wider than the declared bounds
+    class WideLimits(NoValues):
+        @property
+        def limits(self):
+            return jnp.array([-8.0]), jnp.array([8.0])
+
+    with pytest.raises(ValueError, match="does not saturate within the bounds"):
+        jt.solve(prob, WideLimits(2), A0, jt.AugmentedLagrangian(), simulator=SIM, max_steps=10)
+    spline = jt.controls.SaturatedSpline(2, 1, -1.0, 1.0)
+    assert jt.controls.saturates_within(spline, -1.0, 2.0) and jt.controls.saturates_within(spline)
+    assert not jt.controls.saturates_within(spline, -0.5, 2.0) and not jt.controls.saturates_within(CTRL, -9.0, 9.0)

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float64 as as_f64
+from .._checks import as_float64
 
 FORWARD = diffrax.ForwardMode()  # default adjoint of the continuous solves
 
@@ -27,7 +27,7 @@ def check_shape(name, shape, *allowed):
 
 def per_step(name, x, N, shape):
     """Broadcast a constant `shape` array, or check an `(N, *shape)` sequence."""
-    x = as_f64(x)
+    x = as_float64(x)
     check_shape(name, x.shape, shape, (N, *shape))
     return jnp.broadcast_to(x, (N, *shape))
 

@@ -7,7 +7,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._common import as_f64, check_shape
+from .._checks import as_float64
+from ._common import check_shape
 
 
 class AbstractExecutionErrors(eqx.Module):
@@ -33,7 +34,7 @@ class AbstractExecutionErrors(eqx.Module):
 
 
 def _sigma(name, value):
-    value = as_f64(value)
+    value = as_float64(value)
     if value.ndim != 0:
         raise ValueError(f"`{name}` must be a scalar; got shape {value.shape}.")
     if not isinstance(value, jax.core.Tracer) and not bool(value >= 0):
@@ -102,8 +103,8 @@ class ControlErrors(AbstractExecutionErrors):
     additive: jax.Array
 
     def __init__(self, multiplicative=0.0, additive=0.0):
-        self.multiplicative = as_f64(multiplicative)
-        self.additive = as_f64(additive)
+        self.multiplicative = as_float64(multiplicative)
+        self.additive = as_float64(additive)
 
     def num_noise(self, num_controls):
         return 2 * num_controls

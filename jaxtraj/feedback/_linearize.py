@@ -4,10 +4,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_inputs
+from .._checks import as_float64, check_inputs
 from .._simulate import RK4, simulation_status
 from .._status import Status
-from ._common import as_f64, check_shape, interp_rows
+from ._common import check_shape, interp_rows
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import continuous_lqr, discrete_lqr, propagate_covariance
 from ._sampled import bounded_control, check_gains, gain_sequence, noise_free, sample_step
@@ -65,9 +65,9 @@ class Linearization(eqx.Module):
         gains = check_gains(gains, N, m, n)
         K = gain_sequence(gains, self.t)
         F = self.Ad if K is None else self.Ad - self.Bd @ K
-        P0 = jnp.zeros((n, n)) if initial_covariance is None else as_f64(initial_covariance)
+        P0 = jnp.zeros((n, n)) if initial_covariance is None else as_float64(initial_covariance)
         check_shape("initial_covariance", P0.shape, (n, n))
-        W = jnp.zeros((n, n)) if process_noise is None else as_f64(process_noise)
+        W = jnp.zeros((n, n)) if process_noise is None else as_float64(process_noise)
         check_shape("process_noise", W.shape, (n, n))
         dt = jnp.where(self.dt > 0, self.dt, 1.0)
         Ws = jnp.zeros((N, n + p, n + p))
@@ -156,7 +156,7 @@ def bryson_weights(lin: Linearization, state_scale, control_scale, terminal_scal
     tf = lin.t[-1]
 
     def diag(name, scale, k):
-        scale = as_f64(scale)
+        scale = as_float64(scale)
         check_shape(name, scale.shape, (), (k,))
         return jnp.diag(jnp.broadcast_to(1.0 / scale**2, (k,)))
 
@@ -182,7 +182,7 @@ def tracking_lqr(lin: Linearization, Q, R, Qf, *, discrete=True, multiplicative=
     `Q`, `Qf`: `(n, n)` PSD; `R`: `(m, m)` positive definite.
     """
     n, m = lin.B.shape[1:]
-    Q, R, Qf = as_f64(Q), as_f64(R), as_f64(Qf)
+    Q, R, Qf = as_float64(Q), as_float64(R), as_float64(Qf)
     check_shape("Q", Q.shape, (n, n))
     check_shape("R", R.shape, (m, m))
     check_shape("Qf", Qf.shape, (n, n))

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax import lax
 
-from ._common import FORWARD, as_f64, check_shape, interp_rows, per_step, shape_of, symmetrize
+from .._checks import as_float64
+from ._common import FORWARD, check_shape, interp_rows, per_step, shape_of, symmetrize
 
 
 class LQRGains(eqx.Module):
@@ -66,7 +67,7 @@ class DiscreteLQRGains(eqx.Module):
 
 
 def _at(x, t):
-    return as_f64(x(t)) if callable(x) else x
+    return as_float64(x(t)) if callable(x) else x
 
 
 class _RiccatiField(eqx.Module):
@@ -148,15 +149,15 @@ def continuous_lqr(
     check_shape("Qf", shape_of(Qf, t0), (n, n))
     if noise is not None:
         check_shape("noise", shape_of(noise, t0), (n, n))
-    t0, tf = as_f64(t0), as_f64(tf)
-    ts = jnp.linspace(t0, tf, 101) if ts is None else as_f64(ts)
+    t0, tf = as_float64(t0), as_float64(tf)
+    ts = jnp.linspace(t0, tf, 101) if ts is None else as_float64(ts)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"`ts` must be a 1-d array of at least 2 times; got shape {ts.shape}.")
-    cast = lambda x: x if callable(x) else as_f64(x)
+    cast = lambda x: x if callable(x) else as_float64(x)
     W = jnp.zeros((n, n)) if noise is None else noise
     field = _RiccatiField(A_fn, B_fn, cast(Q), cast(R), cast(W))
-    step_ts = None if step_ts is None else as_f64(step_ts)
-    return _continuous_riccati(field, as_f64(Qf), t0, tf, ts, rtol, atol, max_steps, adjoint, step_ts)
+    step_ts = None if step_ts is None else as_float64(step_ts)
+    return _continuous_riccati(field, as_float64(Qf), t0, tf, ts, rtol, atol, max_steps, adjoint, step_ts)
 
 
 @eqx.filter_jit
@@ -214,7 +215,7 @@ def discrete_lqr(As, Bs, Q, R, Qf, *, multiplicative=None, additive=None) -> Dis
 
     **Returns:** `DiscreteLQRGains`.
     """
-    As, Bs = as_f64(As), as_f64(Bs)
+    As, Bs = as_float64(As), as_float64(Bs)
     if As.ndim != 3 or As.shape[1] != As.shape[2]:
         raise ValueError(f"`As` must have shape (N, n, n); got {As.shape}.")
     N, n = As.shape[:2]
@@ -223,10 +224,10 @@ def discrete_lqr(As, Bs, Q, R, Qf, *, multiplicative=None, additive=None) -> Dis
     m = Bs.shape[2]
     Qs = per_step("Q", Q, N, (n, n))
     Rs = per_step("R", R, N, (m, m))
-    Qf = as_f64(Qf)
+    Qf = as_float64(Qf)
     check_shape("Qf", Qf.shape, (n, n))
     Ws = per_step("additive", jnp.zeros((n, n)) if additive is None else additive, N, (n, n))
-    mult = as_f64(0.0 if multiplicative is None else multiplicative)
+    mult = as_float64(0.0 if multiplicative is None else multiplicative)
     if mult.ndim <= 1:
         sig2, Ds = per_step("multiplicative", mult, N, ()), jnp.zeros((N, 0, n, m))
     elif mult.ndim in (3, 4):
@@ -271,7 +272,7 @@ def zoh_discretize(A, B, dt):
 
     **Returns:** `(Ad, Bd)`, shapes `(n, n)`, `(n, m)`.
     """
-    A, B, dt = as_f64(A), as_f64(B), as_f64(dt)
+    A, B, dt = as_float64(A), as_float64(B), as_float64(dt)
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"`A` must have shape (n, n); got {A.shape}.")
     n = A.shape[0]
@@ -297,12 +298,12 @@ def propagate_covariance(P0, Fs, W, G=None):
 
     **Returns:** `(N + 1, n, n)`, P_0 ... P_N.
     """
-    P0, Fs = as_f64(P0), as_f64(Fs)
+    P0, Fs = as_float64(P0), as_float64(Fs)
     if Fs.ndim != 3 or Fs.shape[1] != Fs.shape[2]:
         raise ValueError(f"`Fs` must have shape (N, n, n); got {Fs.shape}.")
     N, n = Fs.shape[:2]
     check_shape("P0", P0.shape, (n, n))
-    G = jnp.eye(n) if G is None else as_f64(G)
+    G = jnp.eye(n) if G is None else as_float64(G)
     q = G.shape[-1]
     Gs = per_step("G", G, N, (n, q))
     Ws = per_step("W", W, N, (q, q))
@@ -356,14 +357,14 @@ def propagate_covariance_continuous(
 
     **Returns:** `(ts, Ps)` with `Ps` of shape `(T, n, n)`.
     """
-    P0, fs = as_f64(P0), shape_of(F_fn, t0)
+    P0, fs = as_float64(P0), shape_of(F_fn, t0)
     if len(fs) != 2 or fs[0] != fs[1]:
         raise ValueError(f"`F_fn` must return a square (n, n) matrix; got shape {tuple(fs)}.")
     check_shape("P0", P0.shape, fs)
     check_shape("W", shape_of(W, t0), fs)
-    t0, tf = as_f64(t0), as_f64(tf)
-    ts = jnp.linspace(t0, tf, 101) if ts is None else as_f64(ts)
-    field = _LyapunovField(F_fn, W if callable(W) else as_f64(W))
+    t0, tf = as_float64(t0), as_float64(tf)
+    ts = jnp.linspace(t0, tf, 101) if ts is None else as_float64(ts)
+    field = _LyapunovField(F_fn, W if callable(W) else as_float64(W))
     return ts, _lyapunov(field, symmetrize(P0), t0, tf, ts, rtol, atol, max_steps, adjoint)
 
 

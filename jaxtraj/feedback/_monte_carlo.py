@@ -5,10 +5,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_inputs
+from .._checks import as_float64, check_inputs
 from .._simulate import RK4, simulation_status
 from .._status import Status
-from ._common import as_f64, check_shape, symmetrize
+from ._common import check_shape, symmetrize
 from ._errors import ThrustErrors
 from ._linearize import check_execution, check_simulator_rk4
 from ._sampled import Noise, bounded_control, check_gains, gain_sequence, noise_free, rollout
@@ -19,7 +19,7 @@ def _psd_sqrt(name, M, n):
     singular)."""
     if M is None:
         return None
-    M = as_f64(M)
+    M = as_float64(M)
     check_shape(name, M.shape, (n, n))
     w, V = jnp.linalg.eigh(symmetrize(M))
     if not isinstance(M, jax.core.Tracer):
@@ -31,7 +31,7 @@ def _psd_sqrt(name, M, n):
 
 def _noise_model(problem, execution, process_noise, initial_covariance, correlation_time):
     execution = check_execution(execution, problem)
-    c = as_f64(correlation_time)
+    c = as_float64(correlation_time)
     if c.ndim != 0:
         raise ValueError(f"`correlation_time` must be a scalar; got shape {c.shape}.")
     if not isinstance(c, jax.core.Tracer) and not bool(c >= 0):
@@ -252,7 +252,7 @@ def monte_carlo(
     N, nx, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     gains = check_gains(gains, N, m, nx)
     noise = _noise_model(problem, execution, process_noise, initial_covariance, correlation_time)
-    levels = as_f64(percentiles)
+    levels = as_float64(percentiles)
     if levels.ndim != 1 or not bool(jnp.all((levels >= 0) & (levels <= 100))):
         raise ValueError(f"`percentiles` must be a 1-d sequence in [0, 100]; got {percentiles!r}.")
     if not (isinstance(dispersion_stride, int) and dispersion_stride >= 1):

@@ -5,8 +5,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .._checks import as_float64
 from .._simulate import rk4_step, segment_data
-from ._common import as_f64, check_shape
+from ._common import check_shape
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import DiscreteLQRGains, LQRGains
 
@@ -131,7 +132,7 @@ def check_gains(gains, N, m, n):
         if gains is not None:
             check_shape("gains.K", gains.K.shape[1:], (m, n))
         return gains
-    K = gains.K if isinstance(gains, DiscreteLQRGains) else as_f64(gains)
+    K = gains.K if isinstance(gains, DiscreteLQRGains) else as_float64(gains)
     if K.shape != (N, m, n):
         raise ValueError(
             f"`gains` must be None, LQRGains, or DiscreteLQRGains / an array with one gain per "
