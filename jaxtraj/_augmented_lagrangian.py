@@ -451,6 +451,11 @@ class AugmentedLagrangian(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
+        if problem.terminal_inequality is not None:
+            raise ValueError(
+                "AugmentedLagrangian does not handle terminal inequalities (`problem.terminal_inequality`) "
+                "yet; use jt.KalmanSQP() or jaxtraj.baselines.solve_slsqp."
+            )
         box = parameter_box(problem, control, self.min_duration)
         a = box.project(a0)
         ev = self._evaluate(problem, control, a, simulator)

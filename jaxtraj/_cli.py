@@ -1,5 +1,10 @@
 """Command line: `jaxtraj problems | solve PROBLEM [...] | reproduce`.
 
+PROBLEM is a built-in problem (`jaxtraj problems` lists them) or a user's own,
+`path/to/file.py:function` or `package.module:function`: the function, called without
+arguments, returns a `jt.Problem` (then `--control` and `--tf` make the start: a zero control
+over [0, tf]) or a tuple `(problem, control, a0)`.
+
 No JAX work at import time; every failure the user can cause ends in a one-line
 `jaxtraj: error: ...` message and exit code 2, never a traceback.
 """
@@ -7,6 +12,8 @@ No JAX work at import time; every failure the user can cause ends in a one-line
 import argparse
 import contextlib
 import datetime
+import importlib
+import importlib.util
 import io as io_module
 import os
 import sys
@@ -15,10 +22,13 @@ import time
 _PROBLEMS = {
     "earth-mars": "Minimum-time low-thrust planar Earth-Mars transfer (source thesis, 7 published cases).",
     "min-energy": "Minimum-energy rest-to-rest double integrator in fixed time (analytic optimum 6).",
+    "solar-sail": "Minimum-time solar-sail Earth-to-Mars-orbit transfer (Kelley's anchor, SaturatedSpline(10, 1)).",
+    "attitude": "Minimum-energy 500 s attitude slew with a 50 deg sun keep-out cone (quaternions, 8 segments).",
 }
 _CONTROLS = (
     "linear:K (continuous, nodes at fixed fractions of tf), linear-free:K (jumps, free node times), "
-    "parabolic:K, constant:K (free switch times), spline:P:DEGREE:LOWER:UPPER"
+    "parabolic:K, constant:K (free switch times), each with :Q for Q channels (e.g. linear:8:2), "
+    "spline:P:DEGREE:LOWER:UPPER"
 )
 
 
@@ -36,14 +46,17 @@ def _parser():
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     sub.add_parser("problems", help="list the available problems and controls")
     s = sub.add_parser("solve", help="solve a problem and write results")
-    s.add_argument("problem", help=f"one of: {', '.join(_PROBLEMS)}")
+    s.add_argument(
+        "problem", help=f"one of: {', '.join(_PROBLEMS)}; or your own, path/to/file.py:function or module:function"
+    )
     g = s.add_mutually_exclusive_group()
     g.add_argument("--case", type=int, help="earth-mars: published thesis case 1..7 (default 4)")
     g.add_argument("--control", help=f"control spec: {_CONTROLS}")
+    s.add_argument("--tf", type=float, default=1.0, help="your own problem: final time of the zero-control start")
     s.add_argument(
         "--solver",
-        default="kalman",
-        help="kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
+        help="default: the problem's own (earth-mars, min-energy, solar-sail: kalman; attitude and your own: sqp); "
+        "kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
         "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region; "
         "problems without path constraints)",
     )
@@ -94,16 +107,19 @@ def parse_control(spec):
     except ValueError:
         raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}") from None
     makers = {
-        "linear": (1, lambda k: jt.controls.PiecewiseLinear(k)),
-        "linear-free": (1, lambda k: jt.controls.PiecewiseLinear(k, continuous=False, free_times=True)),
-        "parabolic": (1, lambda k: jt.controls.PiecewiseParabolic(k)),
-        "constant": (1, lambda k: jt.controls.PiecewiseConstant(k)),
-        "spline": (4, lambda p, d, lo, hi: jt.controls.SaturatedSpline(p, d, lo, hi)),
+        "linear": ((1, 2), lambda k, q=1: jt.controls.PiecewiseLinear(k, channels=q)),
+        "linear-free": (
+            (1, 2),
+            lambda k, q=1: jt.controls.PiecewiseLinear(k, continuous=False, free_times=True, channels=q),
+        ),
+        "parabolic": ((1, 2), lambda k, q=1: jt.controls.PiecewiseParabolic(k, channels=q)),
+        "constant": ((1, 2), lambda k, q=1: jt.controls.PiecewiseConstant(k, channels=q)),
+        "spline": ((4,), lambda p, d, lo, hi: jt.controls.SaturatedSpline(p, d, lo, hi)),
     }
     if kind not in makers:
         raise _UsageError(f"unknown control {kind!r} in {spec!r}: expected {_CONTROLS}")
-    count, make = makers[kind]
-    if len(nums) != count:
+    counts, make = makers[kind]
+    if len(nums) not in counts:
         raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}")
     if isinstance(nums[0], int) and nums[0] > LIMITS["segments"]:
         raise _UsageError(f"control spec {spec!r}: at most {LIMITS['segments']:,} segments; got {nums[0]:,}")
@@ -140,16 +156,82 @@ def _setup(problem_name, args):
         return prob, ctrl, jnp.asarray(a0), solver, label, float(EM.CONSTANTS["rf"])
     if args.case is not None:
         raise _UsageError("--case applies to earth-mars only")
-    prob = jt.problems.analytic.min_energy_double_integrator()
-    ctrl = parse_control(args.control or "linear:3")
-    return (
-        prob,
-        ctrl,
-        jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)),
-        jt.KalmanSearch(),
-        args.control or "linear:3",
-        None,
-    )
+    if problem_name == "solar-sail":
+        sail = jt.problems.solar_sail
+        prob, ctrl, a0 = sail.kelley_case()
+        if args.control:
+            ctrl = parse_control(args.control)
+            a0 = ctrl.initial_guess(7.0, 0.6, 0.6)
+        return prob, ctrl, jnp.asarray(a0), sail.kalman_search_solver(), args.control or "Kelley", None
+    if problem_name == "attitude":
+        prob, ctrl, a0 = jt.problems.attitude.case()
+        if args.control:
+            ctrl = parse_control(args.control)
+            a0 = ctrl.initial_guess(float(a0[-1]), 0.0, 0.0)
+        return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "8 segments", None
+    if problem_name == "min-energy":
+        prob = jt.problems.analytic.min_energy_double_integrator()
+        ctrl = parse_control(args.control or "linear:3")
+        return (
+            prob,
+            ctrl,
+            jnp.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)),
+            jt.KalmanSearch(),
+            args.control or "linear:3",
+            None,
+        )
+    prob, ctrl, a0 = load_user_problem(problem_name, args)
+    return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "own start", None
+
+
+def _user_function(spec):
+    """The function named by `path/to/file.py:function` or `package.module:function`."""
+    where, _, name = spec.rpartition(":")
+    if not where or not name.isidentifier():
+        raise _UsageError(f"unknown problem {spec!r}; available: {', '.join(_PROBLEMS)}, or path/to/file.py:function")
+    try:
+        if where.endswith(".py"):
+            if not os.path.isfile(where):
+                raise _UsageError(f"problem file {where!r} not found")
+            module_spec = importlib.util.spec_from_file_location(f"_jaxtraj_user_{abs(hash(where))}", where)
+            module = importlib.util.module_from_spec(module_spec)
+            module_spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(where)
+    except _UsageError:
+        raise
+    except Exception as e:  # the user's module failed to import: say so in one line
+        raise _UsageError(f"importing {where!r} failed: {type(e).__name__}: {e}") from None
+    fn = getattr(module, name, None)
+    if not callable(fn):
+        raise _UsageError(f"{where!r} has no function {name!r}")
+    return fn
+
+
+def load_user_problem(spec, args):
+    """`(problem, control, a0)` from a user's function (see the module docs)."""
+    import jaxtraj as jt
+
+    fn = _user_function(spec)
+    try:
+        out = fn()
+    except Exception as e:
+        raise _UsageError(f"{spec} raised {type(e).__name__}: {e}") from None
+    if isinstance(out, jt.Problem):
+        prob = out
+        ctrl = parse_control(args.control or f"linear:10:{prob.num_controls}")
+        try:
+            a0 = ctrl.initial_guess(args.tf, 0.0, 0.0)
+        except ValueError as e:
+            raise _UsageError(f"--tf: {e}") from None
+    elif isinstance(out, tuple) and len(out) == 3 and isinstance(out[0], jt.Problem):
+        prob, ctrl, a0 = out
+        if args.control:
+            ctrl = parse_control(args.control)
+            a0 = ctrl.initial_guess(args.tf, 0.0, 0.0)
+    else:
+        raise _UsageError(f"{spec} must return a jt.Problem or (problem, control, a0); got {type(out).__name__}")
+    return prob, ctrl, a0
 
 
 def _enable_compilation_cache():
@@ -225,9 +307,11 @@ def _monte_carlo(prob, ctrl, sol, sim, args):
 
 
 def _solve(args):
-    if args.problem not in _PROBLEMS:
-        raise _UsageError(f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}")
-    if args.solver not in _SOLVERS:
+    if args.problem not in _PROBLEMS and ":" not in args.problem:
+        raise _UsageError(
+            f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}, or path/to/file.py:function"
+        )
+    if args.solver is not None and args.solver not in _SOLVERS:
         raise _UsageError(f"unknown solver {args.solver!r}; available: {', '.join(_SOLVERS)}")
     if args.monte_carlo < 0:
         raise _UsageError(f"--monte-carlo must be >= 0; got {args.monte_carlo}")
@@ -239,7 +323,8 @@ def _solve(args):
         if getattr(args, name) == "":
             raise _UsageError(f"--{name} must not be empty")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-    out = args.out or os.path.join("results", f"{args.problem}-{stamp}")
+    slug = args.problem if args.problem in _PROBLEMS else args.problem.rpartition(":")[2]
+    out = args.out or os.path.join("results", f"{slug}-{stamp}")
     _check_out(out)
 
     if args.starts > 1:
@@ -252,8 +337,16 @@ def _solve(args):
     from jaxtraj.plot import batch_figure, write_figures
 
     _enable_compilation_cache()
+    from ._checks import check_inputs
+
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
-    if args.solver == "sqp":
+    try:
+        a0 = check_inputs(prob, ctrl, a0)
+    except ValueError as e:
+        raise _UsageError(f"{args.problem}: {e}") from None
+    if args.solver == "kalman" and not isinstance(solver, jt.KalmanSearch):
+        solver = jt.KalmanSearch()  # the problem's own tuning where it has one
+    elif args.solver == "sqp":
         solver = jt.KalmanSQP()
     elif args.solver == "sqp-exact":
         solver = jt.KalmanSQP(hessian="exact")
@@ -399,6 +492,9 @@ def main(argv=None):
         if args.command == "problems":
             for name, text in _PROBLEMS.items():
                 print(f"{name:12s} {text}")
+            print(
+                "your own: path/to/file.py:function or module:function (returns a jt.Problem or (problem, control, a0))"
+            )
             print(f"\ncontrols (--control): {_CONTROLS}")
             print("earth-mars --case N: the thesis's seven published parametrizations (1..7)")
             return 0

@@ -64,10 +64,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._bounds import require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
-from ._kkt import active_rows, constraint_rows, path_rows, projected_gradient
+from ._kkt import constraint_rows, inequality_rows, stationarity
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._status import Status
@@ -97,7 +98,7 @@ class _State(eqx.Module):
 
 def _values(ev: Evaluation):
     """[E; C (flattened)]: the terminal constraints and the path constraints on the grid."""
-    rows = path_rows(ev)
+    rows = inequality_rows(ev)
     return ev.E if rows is None else jnp.concatenate([ev.E, rows[0]])
 
 
@@ -220,7 +221,7 @@ class KalmanSearch(AbstractSolver):
         # absorbed correction by at most 1e-14 of itself).
         r_obs = jnp.maximum(r, 1e-14 * (q - r))
         da, P1, _ = sequential_update(prior, P, H, z, r_obs)
-        rows = path_rows(ev)
+        rows = inequality_rows(ev)
         if rows is not None:  # path constraints: predicted violations observed at their boundary
             C, C_a = rows
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
@@ -294,6 +295,7 @@ class KalmanSearch(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
+        require_rows(problem, control, "KalmanSearch")
         ev = evaluate_restricted(problem, control, a0, simulator, self.method)
         f = jnp.float64
         hist = History.empty(max_steps, ("rho", "phase"))
@@ -384,7 +386,7 @@ class KalmanSearch(AbstractSolver):
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
-        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, e_a))
+        pg = stationarity(new_ev, e_a)
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
         converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)
@@ -459,7 +461,7 @@ class KalmanSearch(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=projected_gradient(state.ev.G_a, active_rows(state.ev, state.e_a)),
+            projected_gradient=stationarity(state.ev, state.e_a),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -52,15 +52,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._bounds import require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import (
-    active_rows,
+    inequality_rows,
     lagrangian_gradient,
     multipliers,
-    path_rows,
-    projected_gradient,
+    stationarity,
 )
 from ._line_search import LineSearch
 from ._sensitivity import Evaluation, evaluate_restricted
@@ -97,16 +97,22 @@ def _covariance(B):
 
 
 def _follow_maximum(active, C, tol):
-    """Near the boundary (C >= -tol), move each active path row (flattened `(N q,)`) to the grid
-    neighbour (same component, previous or next point) with the largest C, if that is larger
-    than its own: a touching point travels along the grid as the iterates converge."""
+    """Near the boundary (C >= -tol), move each active path row to the grid neighbour (same
+    component, previous or next point) with the largest C (the path values, `(N, q)`, or
+    None), if that is larger than its own: a touching point travels along the grid as the
+    iterates converge. `active` flags every inequality row (path rows first); the terminal
+    ones stay as they are."""
+    if C is None:
+        return active
     N, q = C.shape
+    terminal = active[N * q :]
+    active = active[: N * q]
     padded = jnp.pad(C, ((1, 1), (0, 0)), constant_values=-jnp.inf)
     shift = jnp.argmax(jnp.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0) - 1  # (N, q)
     shift = jnp.where(C >= -tol, shift, 0)
     rows = jnp.arange(N)[:, None] + shift
     moved = jnp.zeros((N, q), bool).at[rows, jnp.arange(q)[None, :]].max(active.reshape(N, q))
-    return moved.reshape(-1)
+    return jnp.concatenate([moved.reshape(-1), terminal])
 
 
 def _globalization(value):
@@ -223,11 +229,12 @@ class KalmanSQP(AbstractSolver):
         # diagonal h P h^T is not small (measured 8e-7 = 1.5 |E| on case 7 near its optimum,
         # cond B 2e7); one pass brings it to 1e-13.
         d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
-        rows, m = path_rows(ev), ev.E.shape[0]
+        rows, m = inequality_rows(ev), ev.E.shape[0]
         if rows is not None:
-            # Path inequalities C + C_a d <= 0 on the grid points, the appendix-C way: the
-            # points of the active set become observations C_a d = -C (the boundary),
-            # filtered after the terminal ones (each filtering with a refinement pass).
+            # Inequalities C + C_a d <= 0 (path ones on the grid points, then terminal ones),
+            # the appendix-C way: the rows of the active set become observations C_a d = -C
+            # (the boundary), filtered after the equalities (each filtering with a
+            # refinement pass).
             C, C_a = rows
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)  # before any observation
             r_c = self.r_rel * prior_var + 1e-300
@@ -283,16 +290,16 @@ class KalmanSQP(AbstractSolver):
         dnu C > 0 to the merit's slope along (d, lambda_qp - lambda); near the optimum that
         term outweighs -d^T B d and no direction is a descent one (measured on the attitude
         slew: nu = 9.5e-3 at C = -3.4e-6 made the slope +3.5e-8, STALLED)."""
-        if ev.C is None:
+        if inequality_rows(ev) is None:
             return lam
         m = ev.E.shape[0]
-        stale = (lam_qp[m:] == 0.0) & (path_rows(ev)[0] < -self.path_active)
+        stale = (lam_qp[m:] == 0.0) & (inequality_rows(ev)[0] < -self.path_active)
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
 
     @staticmethod
     def _stationary_multipliers(ev, B, d, active):
         """Least-squares solution of [H; C_a(active)]^T lam = -(G_a + B d)."""
-        A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], path_rows(ev)[1], 0.0)])
+        A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], inequality_rows(ev)[1], 0.0)])
         return multipliers(A, ev.G_a + B @ d)
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
@@ -309,6 +316,7 @@ class KalmanSQP(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
+        require_rows(problem, control, "KalmanSQP")
         return self.globalization.init(self, problem, control, a0, simulator, max_steps)
 
     def step(self, problem, control, simulator, state):
@@ -326,7 +334,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=projected_gradient(state.ev.G_a, active_rows(state.ev, self.path_active)),
+            projected_gradient=stationarity(state.ev, self.path_active),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -1,28 +1,38 @@
 """KKT algebra of the restricted problem, shared by every solver: the constraint rows of an
-`Evaluation` (terminal and path), the active ones, least-squares multipliers, the gradient of
-the Lagrangian, the projected gradient and the SQP termination rule."""
+`Evaluation` (terminal equalities, then the inequalities: path, terminal), the active ones,
+least-squares multipliers, the gradient of the Lagrangian, the stationarity residual with
+multipliers of the right sign, the projected gradient and the SQP termination rule."""
 
 import jax.numpy as jnp
+from jax import lax
 
 
-def path_rows(ev):
-    """The path constraints of an `Evaluation` flattened to rows, `(C (N q,), C_a (N q, np))`,
-    or None for a problem without them."""
-    if ev.C is None:
+def inequality_rows(ev):
+    """The inequality constraints (<= 0) of an `Evaluation` as rows, `(values, Jacobian)`: the
+    path constraints on the grid flattened (point after point, N q rows), then the terminal
+    inequalities D, then the control-bound rows V; None for a problem without inequalities."""
+    parts = []
+    if ev.C is not None:
+        parts.append((ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)))
+    if ev.D is not None:
+        parts.append((ev.D, ev.D_a))
+    if ev.V is not None:
+        parts.append((ev.V, ev.V_a))
+    if not parts:
         return None
-    return ev.C.reshape(-1), ev.C_a.reshape(ev.C.size, -1)
+    return jnp.concatenate([p[0] for p in parts]), jnp.concatenate([p[1] for p in parts])
 
 
 def constraint_rows(ev):
-    """[H; C_a]: the Jacobian of all constraints, terminal and path (flattened)."""
-    rows = path_rows(ev)
+    """[H; C_a]: the Jacobian of all constraints, terminal and inequality (`inequality_rows`)."""
+    rows = inequality_rows(ev)
     return ev.H if rows is None else jnp.concatenate([ev.H, rows[1]])
 
 
 def active_rows(ev, tol):
-    """[H; C_a of the path points with C >= -tol] (inactive rows zeroed): the constraints
+    """[H; C_a of the inequality rows with C >= -tol] (inactive rows zeroed): the constraints
     that the projected gradient of a KKT point has to be orthogonal to."""
-    rows = path_rows(ev)
+    rows = inequality_rows(ev)
     if rows is None:
         return ev.H
     C, C_a = rows
@@ -36,8 +46,8 @@ def multipliers(rows, g):
 
 
 def least_squares_multipliers(ev, path_active):
-    """Least-squares multipliers of E and of the path points with C >= -`path_active`
-    ([H; C_a]^T lambda ~ -G_a), the path ones clipped at 0 (zero elsewhere): started at a
+    """Least-squares multipliers of E and of the inequality rows with C >= -`path_active`
+    ([H; C_a]^T lambda ~ -G_a), the inequality ones clipped at 0 (zero elsewhere): started at a
     converged point, the first active set is the touching one."""
     lam = multipliers(active_rows(ev, path_active), ev.G_a)
     m = ev.E.shape[0]
@@ -45,7 +55,7 @@ def least_squares_multipliers(ev, path_active):
 
 
 def lagrangian_gradient(ev, lam):
-    """Gradient of the Lagrangian G + lambda^T [E; C] (terminal and path rows)."""
+    """Gradient of the Lagrangian G + lambda^T [E; C] (terminal and inequality rows)."""
     return ev.G_a + constraint_rows(ev).T @ lam
 
 
@@ -58,6 +68,43 @@ def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
     scale = 1.0 + jnp.abs(G)
     converged = feasible & ((pg <= gtol * scale) | (no_progress & (pg <= acceptable_gtol * scale)))
     return converged, ~converged & no_progress
+
+
+def stationarity(ev, tol):
+    """The first-order KKT stationarity residual with multipliers of the right sign:
+    |G_a + H^T lambda + C_a^T nu| over free lambda (equalities) and nu >= 0 on the inequality
+    rows with C >= -`tol` (nu = 0 on the others). Without inequalities it is the projected
+    gradient |V G_a|.
+
+    The multipliers come from least squares on the near-active rows; then every row with a
+    negative multiplier leaves and the rest are solved again, until none is negative (each
+    round removes at least one row). Any nu >= 0 gives an upper bound of the exact minimum (a
+    non-negative least-squares problem), so the residual can overstate but never understate
+    the distance from stationarity: a row that the gradient pulls the point away from (a
+    negative multiplier) does not count as holding the point."""
+    rows = inequality_rows(ev)
+    if rows is None:
+        return projected_gradient(ev.G_a, ev.H)
+    C, C_a = rows
+    m = ev.E.shape[0]
+
+    def solve(keep):
+        lam = multipliers(jnp.concatenate([ev.H, jnp.where(keep[:, None], C_a, 0.0)]), ev.G_a)
+        return lam.at[m:].set(jnp.where(keep, lam[m:], 0.0))
+
+    def cond(carry):
+        keep, lam, rounds = carry
+        return jnp.any(keep & (lam[m:] < 0.0)) & (rounds < C.shape[0])
+
+    def body(carry):
+        keep, lam, rounds = carry
+        keep = keep & (lam[m:] >= 0.0)
+        return keep, solve(keep), rounds + 1
+
+    keep = C >= -tol
+    _, lam, _ = lax.while_loop(cond, body, (keep, solve(keep), 0))
+    lam = lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
+    return jnp.linalg.norm(lagrangian_gradient(ev, lam))
 
 
 def projected_gradient(G_a, H):

@@ -37,12 +37,11 @@ from jax import lax
 
 from ._checks import check_settings
 from ._kkt import (
-    active_rows,
+    inequality_rows,
     kkt_outcome,
     lagrangian_gradient,
     least_squares_multipliers,
-    path_rows,
-    projected_gradient,
+    stationarity,
 )
 from ._sensitivity import Evaluation
 from ._solution import History
@@ -88,14 +87,13 @@ def _merit_value(G, E, C, lam, mu):
 
 
 def _merit(ev: Evaluation, lam, mu):
-    rows = path_rows(ev)
+    rows = inequality_rows(ev)
     return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
 
 
-def _max_path(ev: Evaluation):
-    if ev.C is None:
-        return jnp.asarray(-jnp.inf)
-    return jnp.max(ev.C)
+def _max_inequality(ev: Evaluation):
+    rows = inequality_rows(ev)
+    return jnp.asarray(-jnp.inf) if rows is None else jnp.max(rows[0])
 
 
 class LineSearchState(eqx.Module):
@@ -156,7 +154,7 @@ class LineSearch(eqx.Module):
     def start(self, sqp, ev, lam, mu, B, d, lam_qp):
         """Penalty update and the merit's value and slope at alpha = 0."""
         dlam = lam_qp - lam
-        rows = path_rows(ev)
+        rows = inequality_rows(ev)
         C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
         Gd, Hd = ev.G_a @ d, ev.H @ d
 
@@ -298,8 +296,8 @@ class LineSearch(eqx.Module):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E))
-        pg = projected_gradient(new_ev.G_a, active_rows(new_ev, sqp.path_active))
-        feasible = (maxE <= sqp.ctol) & (_max_path(new_ev) <= sqp.ctol)
+        pg = stationarity(new_ev, sqp.path_active)
+        feasible = (maxE <= sqp.ctol) & (_max_inequality(new_ev) <= sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
         # within the merit's round-off without halving the projected gradient.

@@ -1,12 +1,24 @@
 """The restricted optimal-control problem: dynamics, initial state, terminal constraints,
-objective, optional control bounds and path constraints.
+objective (Mayer and running cost), optional control and state bounds and path constraints.
 
 Signatures follow diffrax's ordering (time first, `args` last):
 
 * `dynamics(t, x, u, args) -> dx/dt`, shape `(n,)`;
 * `terminal(tf, xf, args) -> M`, shape `(l,)`: terminal equality constraints M = 0;
 * `objective(tf, xf, args) -> G`, a scalar (default: `tf`, minimum time);
-* `path(t, x, u, args) -> C`, shape `(q,)`: path inequality constraints C <= 0 (optional).
+* `running_cost(t, x, u, args) -> L`, a scalar (optional): adds the integral of L over [0, tf]
+  to the objective;
+* `path(t, x, u, args) -> C`, shape `(q,)`: path inequality constraints C <= 0 (optional);
+* `terminal_inequality(tf, xf, args) -> D`, shape `(r,)`: terminal inequality constraints
+  D <= 0 (optional).
+
+A running cost is carried as one more state, the accumulated cost (last, named
+`"running cost"`, starting at 0), and the objective becomes G(tf, x(tf)) + its final value:
+the Mayer form every solver works on, so that the cost's sensitivities (first and second
+order, forward-mode or unit-solution) are those of the state, exact. The user's functions
+keep their signatures (they see the user's state, without the cost). State bounds
+(`state_lower`, `state_upper`) are path constraints on the user's states, named
+`"<state> upper bound"` / `"<state> lower bound"`, after the user's `path` rows.
 
 Path constraints are imposed on the points of the simulator's integration grid (a finer
 check is up to the problem: e.g. `problems.attitude.cone_margin`), by every solver:
@@ -35,7 +47,8 @@ def minimum_time(tf, xf, args):
 
 
 class Problem(eqx.Module):
-    """A control problem in Mayer form with terminal equality constraints.
+    """A control problem with terminal equality constraints, in Mayer form (a running cost
+    becomes one more state; see the module docs).
 
     **Arguments:**
 
@@ -44,13 +57,25 @@ class Problem(eqx.Module):
     - `terminal`: `M(tf, xf, args) -> (l,)`, the terminal constraints M = 0.
     - `constraint_names`: a short name per component of M, used in reports.
     - `num_controls`: number of control channels `nu` (u has shape `(nu,)`).
-    - `objective`: `G(tf, xf, args) -> scalar` to minimize (default: tf).
+    - `objective`: `G(tf, xf, args) -> scalar` to minimize. Default: tf (minimum time), or 0
+      when a `running_cost` is given. To maximize J, minimize -J.
+    - `running_cost`: optional `L(t, x, u, args) -> scalar`; the objective is then
+      G(tf, x(tf)) + the integral of L from 0 to tf.
     - `args`: pytree of constants passed to every function.
     - `state_names`, `control_names`: labels for reports and plots.
     - `control_lower`, `control_upper`: optional bounds on u, shape `(nu,)`.
+    - `state_lower`, `state_upper`: optional bounds on x along the trajectory, shape `(n,)`
+      (or a scalar); +-inf leaves a component free. Imposed as named path constraints.
     - `path`: optional `C(t, x, u, args) -> (q,)` with C <= 0 required along the trajectory.
     - `path_names`: a short name per component of C.
+    - `terminal_inequality`: optional `D(tf, xf, args) -> (r,)` with D <= 0 required at tf.
+    - `terminal_inequality_names`: a short name per component of D.
     - `name`: the problem's name, a label for reports, result files and plots.
+
+    With a running cost the fields describe the Mayer form: `x0`, `num_states`,
+    `state_names` and the trajectories have the accumulated cost as a last component, and
+    `dynamics`, `objective`, `terminal` and `path` are the wrapped functions of that state
+    (`running_cost` is the user's L). State bounds make `path` and `path_names` include them.
 
     !!! note "The name does not take part in compilation"
         Compiled code is keyed by a problem's static structure (functions, sizes) and not
@@ -74,6 +99,10 @@ class Problem(eqx.Module):
     control_upper: jax.Array | None = None
     path: Callable | None = None
     path_names: tuple[str, ...] = ()
+    running_cost: Callable | None = None
+    terminal_inequality: Callable | None = None
+    terminal_inequality_names: tuple[str, ...] = ()
+    _control_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     _label: "_Label" = None  # the name; see `name`
 
     def __init__(
@@ -84,7 +113,8 @@ class Problem(eqx.Module):
         constraint_names,
         *,
         num_controls=1,
-        objective=minimum_time,
+        objective=None,
+        running_cost=None,
         args=None,
         state_names=None,
         control_names=None,
@@ -92,6 +122,10 @@ class Problem(eqx.Module):
         control_upper=None,
         path=None,
         path_names=(),
+        state_lower=None,
+        state_upper=None,
+        terminal_inequality=None,
+        terminal_inequality_names=(),
         name="problem",
     ):
         x0 = np.asarray(x0, dtype=np.float64)
@@ -101,18 +135,26 @@ class Problem(eqx.Module):
             raise ValueError(f"`x0` must be finite; got {x0}.")
         if not (isinstance(num_controls, int) and num_controls >= 1):
             raise ValueError(f"`num_controls` must be an int >= 1; got {num_controls!r}.")
+        if objective is None:
+            objective = minimum_time if running_cost is None else no_mayer_term
         for fname, fn in (("dynamics", dynamics), ("terminal", terminal), ("objective", objective)):
             if not callable(fn):
                 raise ValueError(f"`{fname}` must be callable; got {type(fn).__name__}.")
+        for fname, fn in (("running_cost", running_cost), ("path", path), ("terminal_inequality", terminal_inequality)):
+            if fn is not None and not callable(fn):
+                raise ValueError(f"`{fname}` must be callable or None; got {type(fn).__name__}.")
         self.dynamics = dynamics
         self.x0 = jnp.asarray(x0)
         self.terminal = terminal
         self.constraint_names = _names(constraint_names, "constraint_names")
         self.num_controls = num_controls
         self.objective = objective
+        self.running_cost = running_cost
         self.args = args
         n = x0.size
         self.state_names = _names(state_names, "state_names") if state_names else tuple(f"x{i + 1}" for i in range(n))
+        if len(self.state_names) != n:
+            raise ValueError(f"`state_names` must have {n} entries (one per state); got {len(self.state_names)}.")
         self.control_names = (
             _names(control_names, "control_names") if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
         )
@@ -123,12 +165,24 @@ class Problem(eqx.Module):
             raise ValueError(
                 f"`control_lower` must be <= `control_upper` in every channel; got {np.asarray(lo)} > {np.asarray(hi)}."
             )
+        # the bounds' values as static data: which channels are bounded, and whether a family
+        # saturates within them, decide the structure of the compiled solvers (`_bounds.py`)
+        self._control_box = tuple(
+            tuple(float(v) for v in (np.full(num_controls, fill) if b is None else np.asarray(b)))
+            for b, fill in ((lo, -np.inf), (hi, np.inf))
+        )
         self.path = path
         self.path_names = _names(path_names, "path_names")
+        self.terminal_inequality = terminal_inequality
+        self.terminal_inequality_names = _names(terminal_inequality_names, "terminal_inequality_names")
         if not isinstance(name, str):
             raise ValueError(f"`name` must be a str; got {type(name).__name__}.")
         self._label = _Label(name)
         self._check_signatures()
+        if state_lower is not None or state_upper is not None:
+            self._add_state_bounds(state_lower, state_upper)
+        if running_cost is not None:
+            self._add_running_cost()
 
     @property
     def name(self) -> str:
@@ -158,6 +212,14 @@ class Problem(eqx.Module):
             checks.append(
                 ("path(t, x, u, args)", lambda t, x, u: self.path(t, x, u, self.args), (len(self.path_names),))
             )
+        if self.terminal_inequality is not None:
+            checks.append(
+                (
+                    "terminal_inequality(tf, xf, args)",
+                    lambda t, x, u: self.terminal_inequality(t, x, self.args),
+                    (len(self.terminal_inequality_names),),
+                )
+            )
         for label, fn, shape in checks:
             out = jax.eval_shape(fn, t, x, u)
             if getattr(out, "shape", None) != shape:
@@ -166,6 +228,99 @@ class Problem(eqx.Module):
                     f"(n={n} states, nu={nu} controls, {self.num_constraints} constraint names); "
                     f"got {getattr(out, 'shape', type(out).__name__)}."
                 )
+
+    def _add_state_bounds(self, lower, upper):
+        """Append x_i - upper_i <= 0 and lower_i - x_i <= 0 (finite bounds only) to `path`."""
+        n = self.num_states
+        lo = np.full(n, -np.inf) if lower is None else np.asarray(_bound(lower, n, "state_lower", "states"))
+        hi = np.full(n, np.inf) if upper is None else np.asarray(_bound(upper, n, "state_upper", "states"))
+        if np.any(lo > hi):
+            raise ValueError(f"`state_lower` must be <= `state_upper` in every component; got {lo} > {hi}.")
+        above, below = tuple(np.flatnonzero(np.isfinite(hi))), tuple(np.flatnonzero(np.isfinite(lo)))
+        if not above and not below:
+            return
+        self.path = _StateBounds(
+            self.path, tuple(map(int, above)), jnp.asarray(hi[list(above)]), tuple(map(int, below)),
+            jnp.asarray(lo[list(below)]),
+        )  # fmt: skip
+        self.path_names = (
+            self.path_names
+            + tuple(f"{self.state_names[i]} upper bound" for i in above)
+            + tuple(f"{self.state_names[i]} lower bound" for i in below)
+        )
+
+    def _add_running_cost(self):
+        """The Mayer form: the accumulated cost as the last state (see the module docs)."""
+        L = self.running_cost
+        out = jax.eval_shape(
+            lambda t, x, u: L(t, x, u, self.args),
+            jax.ShapeDtypeStruct((), jnp.float64),
+            jax.ShapeDtypeStruct((self.num_states,), jnp.float64),
+            jax.ShapeDtypeStruct((self.num_controls,), jnp.float64),
+        )
+        if getattr(out, "shape", None) != ():
+            raise ValueError(
+                f"`running_cost(t, x, u, args)` must return a scalar; got {getattr(out, 'shape', type(out).__name__)}."
+            )
+        self.dynamics = _CostDynamics(self.dynamics, L)
+        self.objective = _CostObjective(self.objective)
+        self.terminal = _OnUserState(self.terminal)
+        if self.path is not None:
+            self.path = _OnUserState(self.path)
+        if self.terminal_inequality is not None:
+            self.terminal_inequality = _OnUserState(self.terminal_inequality)
+        self.x0 = jnp.append(self.x0, 0.0)
+        self.state_names = (*self.state_names, "running cost")
+
+
+def no_mayer_term(tf, xf, args):
+    """G = 0: the default Mayer term of a problem with a running cost."""
+    del xf, args
+    return jnp.zeros((), jnp.result_type(tf, float))
+
+
+class _CostDynamics(eqx.Module):
+    """[f(t, x, u); L(t, x, u)] on the state (x, accumulated cost)."""
+
+    dynamics: Callable
+    running_cost: Callable
+
+    def __call__(self, t, y, u, args):
+        x = y[:-1]
+        return jnp.concatenate([self.dynamics(t, x, u, args), jnp.reshape(self.running_cost(t, x, u, args), (1,))])
+
+
+class _CostObjective(eqx.Module):
+    """G(tf, x(tf)) + the accumulated cost."""
+
+    objective: Callable
+
+    def __call__(self, tf, yf, args):
+        return self.objective(tf, yf[:-1], args) + yf[-1]
+
+
+class _OnUserState(eqx.Module):
+    """A user function of (time, x, ...) called on the state without the accumulated cost."""
+
+    fn: Callable
+
+    def __call__(self, t, y, *rest):
+        return self.fn(t, y[:-1], *rest)
+
+
+class _StateBounds(eqx.Module):
+    """The user's path constraints (if any), then x[above] - upper, then lower - x[below]."""
+
+    path: Callable | None
+    above: tuple[int, ...] = eqx.field(static=True)
+    upper: jax.Array
+    below: tuple[int, ...] = eqx.field(static=True)
+    lower: jax.Array
+
+    def __call__(self, t, x, u, args):
+        own = [] if self.path is None else [jnp.asarray(self.path(t, x, u, args))]
+        idx_hi, idx_lo = np.asarray(self.above, int), np.asarray(self.below, int)
+        return jnp.concatenate([*own, x[idx_hi] - self.upper, self.lower - x[idx_lo]])
 
 
 class _Label:
@@ -189,14 +344,14 @@ class _Label:
         return repr(self.text)
 
 
-def _bound(value, nu, name):
-    """A control bound as a float64 `(nu,)` array (a scalar applies to every channel)."""
+def _bound(value, nu, name, what="num_controls"):
+    """A bound as a float64 `(nu,)` array (a scalar applies to every channel or state)."""
     try:
         b = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be a number or {nu} numbers; got {value!r}.") from None
     if b.ndim > 1 or (b.ndim == 1 and b.shape[0] not in (1, nu)):
-        raise ValueError(f"`{name}` must be a scalar or have {nu} entries (num_controls); got shape {b.shape}.")
+        raise ValueError(f"`{name}` must be a scalar or have {nu} entries ({what}); got shape {b.shape}.")
     b = np.broadcast_to(b, (nu,))
     if np.any(np.isnan(b)):
         raise ValueError(f"`{name}` must not contain NaN; got {b}.")

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._bounds import bound_rows
 from ._checks import check_inputs
 from ._problem import Problem
 from ._simulate import (
@@ -207,7 +208,9 @@ class Evaluation(eqx.Module):
     """The restricted problem at one parameter vector (ALGORITHM.md sec. 1):
     objective G and gradient G_a, constraints E = M(tf, x(tf)) and Jacobian H = dE/da, and
     for problems with path constraints their values C (N, q) at the N points of the
-    integration grid (times `path_t`) with C_a = dC/da (N, q, np); None otherwise."""
+    integration grid (times `path_t`) with C_a = dC/da (N, q, np), for problems with
+    terminal inequalities D = D(tf, x(tf)) (r,) with D_a = dD/da (r, np), for declared control
+    bounds that need them the parameter rows V <= 0 with V_a (`_bounds.py`); None otherwise."""
 
     xf: jax.Array
     xf_a: jax.Array
@@ -220,6 +223,10 @@ class Evaluation(eqx.Module):
     C: jax.Array | None = None
     C_a: jax.Array | None = None
     path_t: jax.Array | None = None
+    D: jax.Array | None = None
+    D_a: jax.Array | None = None
+    V: jax.Array | None = None
+    V_a: jax.Array | None = None
 
 
 def path_values(problem, control, a, simulator):
@@ -271,7 +278,12 @@ def evaluate_restricted(problem, control, a, simulator, method="forward") -> Eva
 
     G, G_a = chain(problem.objective)
     E, H = chain(problem.terminal)
-    status = Status.where(status == Status.SUCCESS, simulation_status(True, G, G_a, E, H), status)
+    if problem.terminal_inequality is not None:
+        path["D"], path["D_a"] = chain(problem.terminal_inequality)
+    rows = bound_rows(problem, control, a)
+    if rows is not None:
+        path["V"], path["V_a"] = rows
+    status = Status.where(status == Status.SUCCESS, simulation_status(True, G, G_a, E, H, *path.values()), status)
     return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status, **path)
 
 

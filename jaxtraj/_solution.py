@@ -81,6 +81,8 @@ class Solution(eqx.Module):
     - `max_path_constraint`, `max_path_time`: for problems with path constraints C <= 0
       (solvers that handle them), the largest C on the integration grid (<= 0: satisfied;
       minus the worst margin) and where it occurs; None otherwise.
+    - `terminal_inequality`: for problems with terminal inequalities, their values D at
+      `params` (<= 0: satisfied; named by `problem.terminal_inequality_names`); None otherwise.
 
     **Batched solutions.** `sols[i]` is start i's `Solution` (the same as
     `jax.tree.map(lambda x: x[i], sols)`; a slice, index array or boolean mask selects
@@ -109,6 +111,7 @@ class Solution(eqx.Module):
     history: History
     max_path_constraint: jax.Array | None = None
     max_path_time: jax.Array | None = None
+    terminal_inequality: jax.Array | None = None
 
     @classmethod
     def from_evaluation(cls, ev, params, *, projected_gradient, iterations, integrations, steps, done, status, history):
@@ -120,6 +123,8 @@ class Solution(eqx.Module):
         if ev.C is not None:
             worst = jnp.max(ev.C, axis=1)
             path = {"max_path_constraint": jnp.max(worst), "max_path_time": ev.path_t[jnp.argmax(worst)]}
+        if ev.D is not None:
+            path["terminal_inequality"] = ev.D
         return cls(
             params=params,
             tf=ev.tf,

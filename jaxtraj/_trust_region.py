@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._bounds import needs_rows
 from ._checks import check_settings
 from ._kalman import sequential_update
 from ._kkt import kkt_outcome, lagrangian_gradient, least_squares_multipliers, projected_gradient
@@ -190,9 +191,11 @@ def _merit(ev: Evaluation, lam, nu):
 
 
 def _init(tr, sqp, problem, control, a0, simulator, max_steps):
-    if problem.path is not None:
+    if problem.path is not None or problem.terminal_inequality is not None or needs_rows(problem, control):
         raise ValueError(
-            "KalmanSQP: the trust region (`globalization`) does not handle path constraints; use jt.LineSearch()."
+            "KalmanSQP: the trust region (`globalization`) does not handle inequality constraints "
+            "(path, state bounds, terminal inequalities, control bounds the family does not saturate "
+            "within); use jt.LineSearch()."
         )
     ev = evaluate_restricted(problem, control, a0, simulator, "forward")
     lam = _multipliers(ev)

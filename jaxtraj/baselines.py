@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from ._bounds import require_rows
 from ._checks import check_inputs
-from ._kkt import path_rows
+from ._kkt import inequality_rows
 from ._problem import Problem
 from ._sensitivity import check_method, evaluate_jitted
 from ._simulate import RK4, AbstractSimulator, check_simulator
@@ -82,7 +83,7 @@ class _CachedEvaluation:
         key = a.tobytes()
         if key != self._key:
             ev = self._fn(jnp.asarray(a))
-            path = path_rows(ev)
+            path = inequality_rows(ev)
             self._value = {
                 "tf": float(ev.tf),
                 "G": float(ev.G),
@@ -106,6 +107,7 @@ def _prepare(problem, control, a0, simulator, method):
     check_method(method)
     a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
+    require_rows(problem, control, "the SLSQP / IPOPT baselines")
     return a0, _CachedEvaluation(problem, control, simulator, method)
 
 
@@ -162,7 +164,7 @@ def solve_slsqp(
         {"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]},
         _knot_gap_constraint(control, a0),
     ]
-    if problem.path is not None:  # SLSQP's inequalities are fun >= 0
+    if ev(a0)["C"].size:  # inequalities (path, terminal); SLSQP's are fun >= 0
         constraints.append({"type": "ineq", "fun": lambda a: -ev(a)["C"], "jac": lambda a: -ev(a)["C_a"]})
     res = scipy.optimize.minimize(
         lambda a: ev(a)["G"],

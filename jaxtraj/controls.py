@@ -63,6 +63,11 @@ class AbstractControl(eqx.Module):
         None."""
         return None
 
+    #: u is, channel by channel, a convex combination of the `value_indices` entries (at every
+    #: t): bounds on those entries are then exact bounds on u, which solvers use to honor a
+    #: problem's control bounds. Declare it only when true (default False).
+    value_bounds_exact: ClassVar[bool] = False
+
     #: `segment_data` (the knots and `segment_table`) is affine in `a`; the sensitivities then
     #: differentiate each integration step along fewer directions. Declare it only when true:
     #: the default, False, is always correct.
@@ -104,6 +109,7 @@ class AbstractControl(eqx.Module):
     def __call__(self, a, t) -> jax.Array:
         """u(a, t) for scalar or array `t` in [0, tf]; right-continuous at knots, u(tf) is
         the left limit. Returns shape `t.shape + (num_controls,)`."""
+        a = jnp.asarray(a)
         knots = self.knots(a)
         t = jnp.asarray(t, dtype=knots.dtype)
         k = jnp.clip(jnp.searchsorted(knots, t, side="right") - 1, 0, self.num_segments - 1)
@@ -184,9 +190,16 @@ def _knots_or_final_time(free_times):
 
 
 def _values_but_times(control):
-    """Every entry but the times is a value of the single control channel."""
+    """Every entry but the times is a control value; values come in groups of one per channel."""
     idx = tuple(i for i in range(control.num_params) if i not in set(control.time_indices))
-    return idx, (0,) * len(idx)
+    return idx, tuple(r % control.channels for r in range(len(idx)))
+
+
+def _channel_line(tf, u_start, u_end, t, q):
+    """The straight line at the times `t`, shape `(len(t), q)`; `u_start`, `u_end`: a number
+    or one per channel."""
+    us, ue = (np.broadcast_to(np.asarray(v, dtype=np.float64), (q,)) for v in (u_start, u_end))
+    return _line(tf, us[None], ue[None], np.asarray(t)[:, None])
 
 
 def _check_segments(segments, name="segments"):
@@ -206,7 +219,8 @@ def _check_guess(tf):
 class PiecewiseLinear(AbstractControl):
     """Straight-line segments.
 
-    Layouts of `a` (K = `segments`):
+    Layouts of `a` (K = `segments`; with `channels` = q > 1 each value u is q consecutive
+    entries, one per channel, e.g. `[u_0^1, ..., u_0^q, u_1^1, ...]`):
 
     - `continuous=True, free_times=False` (thesis tests 4, 5, sec. 5.3.2):
       `[u_0, ..., u_K, tf]`, node t_j = j tf / K.
@@ -219,10 +233,17 @@ class PiecewiseLinear(AbstractControl):
     segments: int
     continuous: bool = True
     free_times: bool = False
+    channels: int = 1
     affine: ClassVar[bool] = True
+    value_bounds_exact: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+        _check_segments(self.channels, "channels")
+
+    @property
+    def num_controls(self):
+        return self.channels
 
     @property
     def time_layout(self):
@@ -238,57 +259,61 @@ class PiecewiseLinear(AbstractControl):
 
     @property
     def num_params(self):
-        K = self.segments
+        K, q = self.segments, self.channels
         if self.continuous:
-            return K + 1 + (K - 1 if self.free_times else 0) + 1
-        return 3 * K if self.free_times else 2 * K + 1
+            return (K + 1) * q + (K - 1 if self.free_times else 0) + 1
+        return K * (2 * q + 1) if self.free_times else 2 * K * q + 1
 
     @property
     def time_indices(self):
-        K = self.segments
+        K, q = self.segments, self.channels
         if self.continuous:
-            return tuple(range(K + 1, self.num_params))
+            return tuple(range((K + 1) * q, self.num_params))
         if self.free_times:
-            return tuple(3 * k + 2 for k in range(K))
-        return (2 * K,)
+            return tuple((2 * q + 1) * k + 2 * q for k in range(K))
+        return (2 * K * q,)
 
     def _unpack(self, a):
-        K = self.segments
+        K, q = self.segments, self.channels
         if self.continuous:
-            u = a[: K + 1]
-            ends = jnp.stack([u[:-1], u[1:]], axis=1)
+            u = a[: (K + 1) * q].reshape(K + 1, q)
+            ends = jnp.concatenate([u[:-1], u[1:]], axis=1)
             if self.free_times:
-                inner = a[K + 1 : 2 * K]
+                inner = a[(K + 1) * q : (K + 1) * q + K - 1]
                 knots = jnp.concatenate([jnp.zeros(1, a.dtype), inner, a[-1:]])
             else:
                 knots = a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
             return ends, knots
         if self.free_times:
-            blocks = a.reshape(K, 3)
-            return blocks[:, :2], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 2]])
-        ends = a[: 2 * K].reshape(K, 2)
+            blocks = a.reshape(K, 2 * q + 1)
+            return blocks[:, : 2 * q], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 2 * q]])
+        ends = a[: 2 * K * q].reshape(K, 2 * q)
         return ends, a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
 
     def knots(self, a):
         return self._unpack(a)[1]
 
     def segment_table(self, a):
+        """Row k = [u_start (q), u_end (q)] of segment k."""
         return self._unpack(a)[0]
 
     def local_control(self, row, h, tau):
-        return (row[0] + (row[1] - row[0]) * tau)[None]
+        q = self.channels
+        return row[:q] + (row[q:] - row[:q]) * tau
 
     def initial_guess(self, tf, u_start, u_end):
+        """`u_start`, `u_end`: a number or one per channel."""
         _check_guess(tf)
         K = self.segments
         t = tf * np.arange(K + 1) / K
-        u = _line(tf, u_start, u_end, t)
+        u = _channel_line(tf, u_start, u_end, t, self.channels)  # (K + 1, q)
         if self.continuous:
-            parts = [u] + ([t[1:-1]] if self.free_times else []) + [[tf]]
+            parts = [u.reshape(-1)] + ([t[1:-1]] if self.free_times else []) + [[tf]]
             return jnp.asarray(np.concatenate(parts), dtype=jnp.float64)
+        ends = np.concatenate([u[:-1], u[1:]], axis=1)
         if self.free_times:
-            return jnp.asarray(np.stack([u[:-1], u[1:], t[1:]], axis=1).reshape(-1))
-        return jnp.asarray(np.concatenate([np.stack([u[:-1], u[1:]], axis=1).reshape(-1), [tf]]))
+            return jnp.asarray(np.concatenate([ends, t[1:, None]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([ends.reshape(-1), [tf]]))
 
     def _check_values(self, a):
         if self.free_times:
@@ -301,6 +326,7 @@ class PiecewiseParabolic(AbstractControl):
     Per arc `[u_start, slope, u_end, t_end]` (`free_times=True`; the last t_end is tf) or
     `[u_start, slope, u_end]` followed by `tf` (`free_times=False`, equally spaced nodes).
     On arc k of duration h: u = u_start + slope h tau + (u_end - u_start - slope h) tau^2.
+    With `channels` = q > 1, u_start, slope and u_end are q consecutive entries each.
 
     !!! note "OCR decision"
         The thesis's formula for the arc is garbled in the OCR. The second parameter of
@@ -312,10 +338,16 @@ class PiecewiseParabolic(AbstractControl):
 
     segments: int
     free_times: bool = True
+    channels: int = 1
     affine: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+        _check_segments(self.channels, "channels")
+
+    @property
+    def num_controls(self):
+        return self.channels
 
     @property
     def time_layout(self):
@@ -324,9 +356,11 @@ class PiecewiseParabolic(AbstractControl):
     @property
     def value_indices(self):
         """u_start and u_end of each arc (the slopes are not control values)."""
-        stride = 4 if self.free_times else 3
-        idx = tuple(stride * k + j for k in range(self.segments) for j in (0, 2))
-        return idx, (0,) * len(idx)
+        q = self.channels
+        stride = 3 * q + (1 if self.free_times else 0)
+        offsets = [*range(q), *range(2 * q, 3 * q)]
+        idx = tuple(stride * k + j for k in range(self.segments) for j in offsets)
+        return idx, tuple(j % q for _ in range(self.segments) for j in offsets)
 
     @property
     def num_segments(self):
@@ -334,40 +368,46 @@ class PiecewiseParabolic(AbstractControl):
 
     @property
     def num_params(self):
-        return 4 * self.segments if self.free_times else 3 * self.segments + 1
+        K, q = self.segments, self.channels
+        return K * (3 * q + 1) if self.free_times else 3 * K * q + 1
 
     @property
     def time_indices(self):
+        K, q = self.segments, self.channels
         if self.free_times:
-            return tuple(4 * k + 3 for k in range(self.segments))
-        return (3 * self.segments,)
+            return tuple((3 * q + 1) * k + 3 * q for k in range(K))
+        return (3 * K * q,)
 
     def _unpack(self, a):
-        K = self.segments
+        K, q = self.segments, self.channels
         if self.free_times:
-            blocks = a.reshape(K, 4)
-            return blocks[:, :3], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 3]])
-        return a[: 3 * K].reshape(K, 3), a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+            blocks = a.reshape(K, 3 * q + 1)
+            return blocks[:, : 3 * q], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 3 * q]])
+        return a[: 3 * K * q].reshape(K, 3 * q), a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
 
     def knots(self, a):
         return self._unpack(a)[1]
 
     def segment_table(self, a):
+        """Row k = [u_start (q), slope (q), u_end (q)] of arc k."""
         return self._unpack(a)[0]
 
     def local_control(self, row, h, tau):
-        u0, slope, u1 = row[0], row[1], row[2]
-        return (u0 + slope * h * tau + (u1 - u0 - slope * h) * tau**2)[None]
+        q = self.channels
+        u0, slope, u1 = row[:q], row[q : 2 * q], row[2 * q :]
+        return u0 + slope * h * tau + (u1 - u0 - slope * h) * tau**2
 
     def initial_guess(self, tf, u_start, u_end):
+        """`u_start`, `u_end`: a number or one per channel."""
         _check_guess(tf)
-        K = self.segments
+        K, q = self.segments, self.channels
         t = tf * np.arange(K + 1) / K
-        u = _line(tf, u_start, u_end, t)
-        slope = np.full(K, (u_end - u_start) / tf)
+        u = _channel_line(tf, u_start, u_end, t, q)  # (K + 1, q)
+        slope = np.broadcast_to((u[-1] - u[0]) / tf, (K, q))
+        arcs = np.concatenate([u[:-1], slope, u[1:]], axis=1)
         if self.free_times:
-            return jnp.asarray(np.stack([u[:-1], slope, u[1:], t[1:]], axis=1).reshape(-1))
-        return jnp.asarray(np.concatenate([np.stack([u[:-1], slope, u[1:]], axis=1).reshape(-1), [tf]]))
+            return jnp.asarray(np.concatenate([arcs, t[1:, None]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([arcs.reshape(-1), [tf]]))
 
     def _check_values(self, a):
         if self.free_times:
@@ -378,15 +418,23 @@ class PiecewiseConstant(AbstractControl):
     """Constant levels with (free) switch times (thesis tests 6, 7, sec. 5.3.5).
 
     Per piece `[level, t_end]` (`free_times=True`; the last t_end is tf), or
-    `[level_1, ..., level_K, tf]` with equally spaced switches (`free_times=False`).
+    `[level_1, ..., level_K, tf]` with equally spaced switches (`free_times=False`). With
+    `channels` = q > 1 each level is q consecutive entries.
     """
 
     segments: int
     free_times: bool = True
+    channels: int = 1
     affine: ClassVar[bool] = True
+    value_bounds_exact: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_segments(self.segments)
+        _check_segments(self.channels, "channels")
+
+    @property
+    def num_controls(self):
+        return self.channels
 
     @property
     def time_layout(self):
@@ -402,39 +450,43 @@ class PiecewiseConstant(AbstractControl):
 
     @property
     def num_params(self):
-        return 2 * self.segments if self.free_times else self.segments + 1
+        K, q = self.segments, self.channels
+        return K * (q + 1) if self.free_times else K * q + 1
 
     @property
     def time_indices(self):
+        K, q = self.segments, self.channels
         if self.free_times:
-            return tuple(2 * k + 1 for k in range(self.segments))
-        return (self.segments,)
+            return tuple((q + 1) * k + q for k in range(K))
+        return (K * q,)
 
     def _unpack(self, a):
-        K = self.segments
+        K, q = self.segments, self.channels
         if self.free_times:
-            blocks = a.reshape(K, 2)
-            return blocks[:, 0], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, 1]])
-        return a[:K], a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
+            blocks = a.reshape(K, q + 1)
+            return blocks[:, :q], jnp.concatenate([jnp.zeros(1, a.dtype), blocks[:, q]])
+        return a[: K * q].reshape(K, q), a[-1] * jnp.arange(K + 1, dtype=a.dtype) / K
 
     def knots(self, a):
         return self._unpack(a)[1]
 
     def segment_table(self, a):
-        return self._unpack(a)[0][:, None]
+        """Row k = the levels (q) of piece k."""
+        return self._unpack(a)[0]
 
     def local_control(self, row, h, tau):
         return row + 0.0 * tau
 
     def initial_guess(self, tf, u_start, u_end):
-        """Levels = the straight line's value at each piece's midpoint."""
+        """Levels = the straight line's value at each piece's midpoint (`u_start`, `u_end`: a
+        number or one per channel)."""
         _check_guess(tf)
         K = self.segments
         t = tf * np.arange(K + 1) / K
-        levels = _line(tf, u_start, u_end, 0.5 * (t[:-1] + t[1:]))
+        levels = _channel_line(tf, u_start, u_end, 0.5 * (t[:-1] + t[1:]), self.channels)  # (K, q)
         if self.free_times:
-            return jnp.asarray(np.stack([levels, t[1:]], axis=1).reshape(-1))
-        return jnp.asarray(np.concatenate([levels, [tf]]))
+            return jnp.asarray(np.concatenate([levels, t[1:, None]], axis=1).reshape(-1))
+        return jnp.asarray(np.concatenate([levels.reshape(-1), [tf]]))
 
     def _check_values(self, a):
         if self.free_times:
@@ -481,7 +533,11 @@ class SaturatedSpline(AbstractControl):
     lower: jax.Array
     upper: jax.Array
     free_durations: bool = True
+    # the limits as static data: whether the family saturates within a problem's bounds is
+    # decided at trace time (`_bounds.py`), when `lower` and `upper` are traced
+    _limits: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     affine: ClassVar[bool] = True  # the knots and coefficient rows (the clip acts inside local_control)
+    value_bounds_exact: ClassVar[bool] = True  # the kernels are >= 0 and sum to 1
 
     def __init__(self, segments, degree, lower, upper, free_durations=True):
         _check_segments(segments)
@@ -498,6 +554,7 @@ class SaturatedSpline(AbstractControl):
         self.degree = degree
         self.lower = jnp.asarray(lo.copy())
         self.upper = jnp.asarray(hi.copy())
+        self._limits = (tuple(map(float, lo)), tuple(map(float, hi)))
         self.free_durations = free_durations
 
     @property
@@ -521,7 +578,7 @@ class SaturatedSpline(AbstractControl):
 
     @property
     def limits(self):
-        return self.lower, self.upper
+        return np.asarray(self._limits[0]), np.asarray(self._limits[1])
 
     @property
     def _num_times(self):

@@ -81,6 +81,7 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     arrays = {
         "params": np.asarray(sol.params),
         "constraints": np.asarray(sol.constraints),
+        **({} if sol.terminal_inequality is None else {"terminal_inequality": np.asarray(sol.terminal_inequality)}),
         "t": np.asarray(traj.t),
         "x": np.asarray(traj.x),
         "u": np.asarray(traj.u),
@@ -106,6 +107,16 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         "trajectory_status": status_name(traj.status),
         **outputs,
         "constraints": {name: float(e) for name, e in zip(problem.constraint_names, np.asarray(sol.constraints))},
+        **(
+            {}
+            if sol.terminal_inequality is None
+            else {
+                "terminal_inequality": {
+                    name: float(d)
+                    for name, d in zip(problem.terminal_inequality_names, np.asarray(sol.terminal_inequality))
+                }
+            }
+        ),
         "iterations": int(sol.iterations),
         "integrations": int(sol.integrations),
         "steps": n,
@@ -197,6 +208,9 @@ def load(folder):
         if "max_path_constraint" not in summary
         else need(summary, "max_path_constraint", summary_path),
         max_path_time=None if "max_path_time" not in summary else need(summary, "max_path_time", summary_path),
+        terminal_inequality=None
+        if "terminal_inequality" not in arrays
+        else need(arrays, "terminal_inequality", arrays_path),
     )
     traj = Trajectory(
         t=need(arrays, "t", arrays_path),

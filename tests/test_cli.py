@@ -47,7 +47,46 @@ def test_solve_writes_results_that_load_back(tmp_path):
 
 def test_problems_lists_the_problems(tmp_path):
     r = run("problems", tmp_path=tmp_path)
-    assert r.returncode == 0 and "earth-mars" in r.stdout and "linear:K" in r.stdout
+    assert r.returncode == 0 and "linear:K" in r.stdout and "file.py:function" in r.stdout
+    for name in ("earth-mars", "min-energy", "solar-sail", "attitude"):
+        assert name in r.stdout
+
+
+USER_PROBLEM = """
+import jax.numpy as jnp
+import jaxtraj as jt
+
+
+def plane():
+    # rest to rest in the plane in time 1, min 1/2 int |u|^2: J* = 6 |(1, 2)|^2 = 30
+    return jt.Problem(
+        lambda t, x, u, args: jnp.concatenate([x[2:], u]),
+        [0.0, 0.0, 0.0, 0.0],
+        lambda tf, xf, args: jnp.concatenate([xf - jnp.array([1.0, 2.0, 0.0, 0.0]), jnp.array([tf - 1.0])]),
+        ("x", "y", "vx", "vy", "tf"),
+        num_controls=2,
+        running_cost=lambda t, x, u, args: 0.5 * jnp.sum(u**2),
+        name="plane",
+    )
+
+
+def broken():
+    raise RuntimeError("bad model")
+"""
+
+
+def test_solve_runs_a_users_own_problem_from_a_file(tmp_path):
+    (tmp_path / "mine.py").write_text(USER_PROBLEM)
+    out = tmp_path / "plane"
+    r = run("solve", "mine.py:plane", "--control", "linear:4:2", "--steps", "20", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and summary["problem"] == "plane"
+    assert abs(summary["objective"] - 30.0) < 1e-8
+    assert summary["inputs"]["control"] == "PiecewiseLinear(segments=4, channels=2)"
+    assert (out / "solution.png").exists()
+    r = run("solve", "mine.py:broken", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:broken raised RuntimeError: bad model"
 
 
 @pytest.mark.parametrize(
@@ -64,6 +103,11 @@ def test_problems_lists_the_problems(tmp_path):
         (("solve", "earth-mars", "--control", "linear:100000"), "at most 1,000 segments; got 100,000"),
         (("solve", "earth-mars", "--max-steps", "10000000000"), "--max-steps must be <= 1,000,000"),
         (("solve", "earth-mars", "--control", ""), "--control must not be empty"),
+        (("solve", "no_such_file.py:make"), "problem file 'no_such_file.py' not found"),
+        (("solve", "no_such_module_xyz:make"), "importing 'no_such_module_xyz' failed: ModuleNotFoundError"),
+        (("solve", "json:nothing"), "'json' has no function 'nothing'"),
+        (("solve", "earth-mars", "--control", "linear:4:2.5"), "malformed control spec 'linear:4:2.5'"),
+        (("solve", "earth-mars", "--control", "linear:4:2"), "2 channel(s) but `problem` 'earth-mars'"),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message, tmp_path):

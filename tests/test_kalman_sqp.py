@@ -462,7 +462,7 @@ def test_trust_region_min_energy_analytic_optimum(simulator):
 def test_trust_region_refuses_path_constraints():
     prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
     ctrl = jt.controls.PiecewiseLinear(4)
-    with pytest.raises(ValueError, match="path constraints"):
+    with pytest.raises(ValueError, match="inequality constraints"):
         jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), TRUST_REGION, simulator=jt.RK4(4))
 
 

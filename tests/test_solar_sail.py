@@ -326,8 +326,14 @@ def test_kalman_sqp_reaches_kelleys_optimum_from_above(indirect):
     +0.023 % over the published value), max |E| = 5e-15, 93 iterations / 116 integrations.
     The projected gradient levels off at 2.4e-7 (its round-off floor here) with the objective
     converged to 1e-10: SUCCESS by `acceptable_gtol` (it was STALLED before issue 17, when
-    only `gtol` = 1e-9 (1 + tf) counted)."""
-    prob = ss.problem("mars", ss.KELLEY_A0, r_f=ss.KELLEY_RF)
+    only `gtol` = 1e-9 (1 + tf) counted).
+
+    The problem here does not declare the pitch bounds +-90 deg (the unrestricted optimum
+    stays below 75 deg): with them KalmanSQP takes the node values' bounds as rows of its
+    active set, and from this start its active-set QP (no row leaves once added) ends
+    STALLED at the second step (issue 20)."""
+    sail = ss.problem("mars", ss.KELLEY_A0, r_f=ss.KELLEY_RF)
+    prob = jt.Problem(sail.dynamics, sail.x0, sail.terminal, sail.constraint_names, args=sail.args, name="unbounded")
     ctrl = jt.controls.PiecewiseLinear(16)
     alpha = math.radians(35.0)
     a0 = jnp.asarray(ctrl.initial_guess(7.0, alpha, alpha))
