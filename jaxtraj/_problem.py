@@ -70,6 +70,9 @@ class Problem(eqx.Module):
     - `path_names`: a short name per component of C.
     - `terminal_inequality`: optional `D(tf, xf, args) -> (r,)` with D <= 0 required at tf.
     - `terminal_inequality_names`: a short name per component of D.
+    - `tf_bounds`: optional `(lower, upper)` on the free final time (either may be +-inf):
+      terminal inequalities `lower - tf <= 0`, `tf - upper <= 0` named `"tf lower bound"` /
+      `"tf upper bound"`, after the user's.
     - `name`: the problem's name, a label for reports, result files and plots.
 
     With a running cost the fields describe the Mayer form: `x0`, `num_states`,
@@ -126,6 +129,7 @@ class Problem(eqx.Module):
         state_upper=None,
         terminal_inequality=None,
         terminal_inequality_names=(),
+        tf_bounds=None,
         name="problem",
     ):
         x0 = np.asarray(x0, dtype=np.float64)
@@ -181,6 +185,8 @@ class Problem(eqx.Module):
         self._check_signatures()
         if state_lower is not None or state_upper is not None:
             self._add_state_bounds(state_lower, state_upper)
+        if tf_bounds is not None:
+            self._add_tf_bounds(tf_bounds)
         if running_cost is not None:
             self._add_running_cost()
 
@@ -247,6 +253,24 @@ class Problem(eqx.Module):
             self.path_names
             + tuple(f"{self.state_names[i]} upper bound" for i in above)
             + tuple(f"{self.state_names[i]} lower bound" for i in below)
+        )
+
+    def _add_tf_bounds(self, tf_bounds):
+        """Append lower - tf <= 0 and tf - upper <= 0 (finite ones) to `terminal_inequality`."""
+        try:
+            lo, hi = (float(v) for v in tf_bounds)
+        except (TypeError, ValueError):
+            raise ValueError(f"`tf_bounds` must be a pair (lower, upper) of numbers; got {tf_bounds!r}.") from None
+        if np.isnan(lo) or np.isnan(hi) or not lo < hi or hi <= 0:
+            raise ValueError(f"`tf_bounds` must have lower < upper and upper > 0; got {tf_bounds!r}.")
+        above, below = np.isfinite(hi), np.isfinite(lo) and lo > 0
+        if not (above or below):
+            return
+        self.terminal_inequality = _TimeBounds(self.terminal_inequality, lo if below else None, hi if above else None)
+        self.terminal_inequality_names = (
+            self.terminal_inequality_names
+            + (("tf lower bound",) if below else ())
+            + (("tf upper bound",) if above else ())
         )
 
     def _add_running_cost(self):
@@ -321,6 +345,20 @@ class _StateBounds(eqx.Module):
         own = [] if self.path is None else [jnp.asarray(self.path(t, x, u, args))]
         idx_hi, idx_lo = np.asarray(self.above, int), np.asarray(self.below, int)
         return jnp.concatenate([*own, x[idx_hi] - self.upper, self.lower - x[idx_lo]])
+
+
+class _TimeBounds(eqx.Module):
+    """The user's terminal inequalities (if any), then lower - tf and tf - upper."""
+
+    terminal_inequality: Callable | None
+    lower: float | None = eqx.field(static=True)
+    upper: float | None = eqx.field(static=True)
+
+    def __call__(self, tf, xf, args):
+        rows = [] if self.terminal_inequality is None else [jnp.asarray(self.terminal_inequality(tf, xf, args))]
+        rows += [] if self.lower is None else [jnp.reshape(self.lower - tf, (1,))]
+        rows += [] if self.upper is None else [jnp.reshape(tf - self.upper, (1,))]
+        return jnp.concatenate(rows)
 
 
 class _Label:

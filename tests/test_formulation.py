@@ -332,3 +332,28 @@ def test_bounds_a_family_cannot_honor_are_refused():
         jt.solve(
             prob, ctrl, ctrl.initial_guess(3.0, 0.5, -0.5), jt.KalmanSQP(hessian="exact", globalization="trust-region")
         )
+
+
+def test_tf_bounds_reach_the_analytic_optimum():
+    """x'' = u, rest to rest over a distance 1, min 1/2 int u^2 with tf free in [0.5, 2]: the
+    energy of the optimal u = (6 - 12 t / tf) / tf^2 is 6 / tf^3, decreasing, so tf* = 2 and
+    J* = 0.75 (a linear control: exact for the family)."""
+    prob = jt.Problem(
+        lambda t, x, u, args: jnp.array([x[1], u[0]]),
+        [0.0, 0.0],
+        lambda tf, xf, args: xf - jnp.array([1.0, 0.0]),
+        ("x", "v"),
+        running_cost=_HALF_U2,
+        tf_bounds=(0.5, 2.0),
+    )
+    assert prob.terminal_inequality_names == ("tf lower bound", "tf upper bound")
+    ctrl = jt.controls.PiecewiseLinear(2)
+    a0 = ctrl.initial_guess(1.0, 1.0, -1.0)
+    for solver in (None, jt.KalmanSearch()):
+        sol = jt.solve(prob, ctrl, a0, solver, simulator=SIM)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.tf) - 2.0) < 1e-6 and abs(float(sol.objective) - 0.75) < 1e-6
+    res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
+    assert res.success and abs(res.tf - 2.0) < 1e-8 and abs(res.objective - 0.75) < 1e-8
+    with pytest.raises(ValueError, match="tf_bounds"):
+        jt.Problem(lambda t, x, u, a: x, [0.0], lambda tf, xf, a: xf, ("a",), tf_bounds=(3.0, 1.0))
