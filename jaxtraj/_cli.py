@@ -250,15 +250,25 @@ def _enable_compilation_cache():
     return folder
 
 
+#: What this command holds until it exits: the lock on its --out folder.
+_HELD = contextlib.ExitStack()
+
+
 def _check_out(folder):
+    """Create --out, check it is writable and lock it for this run (`io.folder_lock`)."""
+    from .io import folder_lock
+
     try:
         os.makedirs(folder, exist_ok=True)
         probe = os.path.join(folder, ".write-test")
         with open(probe, "w") as f:
             f.write("")
         os.remove(probe)
+        _HELD.enter_context(folder_lock(folder, "--out"))
     except OSError as e:
         raise _UsageError(f"cannot write to --out {folder!r}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise _UsageError(str(e)) from None
 
 
 def _monte_carlo(prob, ctrl, sol, sim, args):
@@ -507,6 +517,8 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("jaxtraj: interrupted", file=sys.stderr)
         return 130
+    finally:
+        _HELD.close()
 
 
 if __name__ == "__main__":

@@ -2,8 +2,10 @@
 dense trajectory, history). Every file is written atomically (temporary file + rename), so an
 interrupted run never leaves a truncated file, and the summary, written last, carries the
 checksum of the arrays it belongs to. `load(dir)` gives the Solution and Trajectory back,
-parameters bit for bit, or a ValueError that names the damaged file."""
+parameters bit for bit, or a ValueError that names the damaged file. `folder_lock` keeps two
+runs out of one folder."""
 
+import contextlib
 import hashlib
 import json
 import math
@@ -20,6 +22,35 @@ from ._status import STATUS_NAMES, Status, status_name
 
 _HISTORY_FIELDS = ("objective", "max_constraint_error", "step_norm", "accepted", "constraint_tolerance")
 _DETAIL = "history_detail_"
+
+
+@contextlib.contextmanager
+def folder_lock(folder, what="`out`"):
+    """Hold an exclusive lock on `folder` (creating it; the lock is a `.lock` file in it) for
+    the `with` block: a second run that tries the same folder meanwhile gets a one-line
+    ValueError naming `what` instead of writing its files between the first run's. The lock
+    is released when the block ends or the process dies. (POSIX `flock`; elsewhere no lock.)"""
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f"{what}: {folder!r} is a file, not a folder.")
+    os.makedirs(folder, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(os.path.join(folder, ".lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise ValueError(
+            f"{what}: {folder!r} is in use by another run (locked); wait for it to end or choose another folder."
+        ) from None
+    try:
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
 
 
 def atomic_write(path, write):

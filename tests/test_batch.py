@@ -231,25 +231,39 @@ def test_resume_with_other_inputs_is_refused(tmp_path):
         "num_chunks": 2,
         "history": True,
         "a0s_sha256": files.fingerprint(STARTS),
-        "inputs_sha256": files.fingerprint((PROB, CTRL, SOLVER, SIM, MAX_STEPS)),
+        "problem_sha256": files.fingerprint(PROB),
+        "control_sha256": files.fingerprint(CTRL),
+        "solver_sha256": files.fingerprint(SOLVER),
+        "simulator_sha256": files.fingerprint(SIM),
+        "max_steps": MAX_STEPS,
     }
     with open(os.path.join(out, "manifest.json"), "w") as f:
         json.dump(manifest, f)
     other = STARTS.copy()
     other[0, 0] += 1e-9
-    with pytest.raises(ValueError, match=r"different inputs \(a0s_sha256"):
+    with pytest.raises(ValueError, match=r"different inputs \(a0s changed\)"):
         solve_batch(PROB, CTRL, other, SOLVER, out=out, resume=True, **KW)
-    with pytest.raises(ValueError, match=r"different inputs \(inputs_sha256"):
+    with pytest.raises(ValueError, match=r"different inputs \(solver changed\)"):
         solve_batch(PROB, CTRL, STARTS, jt.KalmanSearch(rho=0.5), out=out, resume=True, **KW)
-    with pytest.raises(ValueError, match=r"different inputs \(inputs_sha256"):
+    with pytest.raises(ValueError, match=r"different inputs \(max_steps: on disk 150, now 151\)"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **{**KW, "max_steps": 151})
     with pytest.raises(ValueError, match=r"chunk_size: on disk 4, now 3"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **{**KW, "chunk_size": 3})
     other_prob = jt.problems.earth_mars.problem(mu=1.01)
-    with pytest.raises(ValueError, match=r"inputs_sha256"):
+    with pytest.raises(ValueError, match=r"different inputs \(problem changed\)"):
         solve_batch(other_prob, CTRL, STARTS, SOLVER, out=out, resume=True, **KW)
+    with pytest.raises(ValueError, match=r"different inputs \(control changed; simulator changed\)"):
+        other_ctrl = jt.controls.PiecewiseLinear(3, continuous=False)  # also 7 parameters
+        solve_batch(PROB, other_ctrl, STARTS, SOLVER, out=out, resume=True, **{**KW, "simulator": jt.RK4(21)})
     with pytest.raises(ValueError, match=r"already holds a batch run"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, **KW)
+    # one run at a time in a folder; a file is not a folder
+    with jt.io.folder_lock(out):
+        with pytest.raises(ValueError, match=r"is in use by another run"):
+            solve_batch(PROB, CTRL, STARTS, SOLVER, out=out, resume=True, **KW)
+    (tmp_path / "a-file").write_text("x")
+    with pytest.raises(ValueError, match=r"is a file, not a folder"):
+        solve_batch(PROB, CTRL, STARTS, SOLVER, out=str(tmp_path / "a-file"), **KW)
 
 
 def test_bad_arguments():

@@ -256,3 +256,16 @@ def test_monte_carlo_after_a_solve(tmp_path):
     assert mc["trace_ratio"] < 0.1  # the feedback shrinks the terminal dispersion (~0.01 on case 5)
     bad = run("solve", "min-energy", "--monte-carlo", "10", "--out", str(tmp_path / "x"), tmp_path=tmp_path)
     assert bad.returncode == 2 and "earth-mars only" in bad.stderr
+
+
+def test_a_locked_out_folder_is_refused(tmp_path):
+    """Two runs cannot write one folder at once: while another run holds --out, the command
+    stops at once with a one-line error."""
+    out = tmp_path / "busy"
+    with jt.io.folder_lock(str(out)):
+        r = run("solve", "earth-mars", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert (
+        r.stderr.strip()
+        == f"jaxtraj: error: --out: {str(out)!r} is in use by another run (locked); wait for it to end or choose another folder."
+    )

@@ -13,7 +13,7 @@ import numpy as np
 from .. import io as _io
 
 #: Format tag of `manifest.json`.
-FORMAT = "jaxtraj-batch-1"
+FORMAT = "jaxtraj-batch-2"
 
 
 def fingerprint(tree) -> str:
@@ -87,6 +87,8 @@ def read_chunk(out, k, rows, spec, run):
 def prepare_out(out, manifest, resume, writer):
     """Create `out` and its manifest (process 0), or check an existing manifest against
     this run's."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"`out`: {out!r} is a file, not a folder.")
     path = os.path.join(out, "manifest.json")
     if os.path.exists(path):
         if not resume:
@@ -102,7 +104,12 @@ def prepare_out(out, manifest, resume, writer):
             raise ValueError(f"`out`: {e} Delete the folder to start the run anew.") from None
         diff = [k for k in manifest if k != "description" and old.get(k) != manifest[k]]
         if diff:
-            details = "; ".join(f"{k}: on disk {old.get(k)!r}, now {manifest[k]!r}" for k in diff)
+            details = "; ".join(
+                f"{k.removesuffix('_sha256')} changed"
+                if k.endswith("_sha256")
+                else f"{k}: on disk {old.get(k)!r}, now {manifest[k]!r}"
+                for k in diff
+            )
             raise ValueError(
                 f"`resume`: the run in {out!r} was started with different inputs ({details}). "
                 "Use the same a0s, problem, control, solver, simulator, max_steps, chunk_size and "
