@@ -218,6 +218,8 @@ class Problem(eqx.Module):
             checks.append(
                 ("path(t, x, u, args)", lambda t, x, u: self.path(t, x, u, self.args), (len(self.path_names),))
             )
+        if self.running_cost is not None:
+            checks.append(("running_cost(t, x, u, args)", lambda t, x, u: self.running_cost(t, x, u, self.args), ()))
         if self.terminal_inequality is not None:
             checks.append(
                 (
@@ -245,10 +247,8 @@ class Problem(eqx.Module):
         above, below = tuple(np.flatnonzero(np.isfinite(hi))), tuple(np.flatnonzero(np.isfinite(lo)))
         if not above and not below:
             return
-        self.path = _StateBounds(
-            self.path, tuple(map(int, above)), jnp.asarray(hi[list(above)]), tuple(map(int, below)),
-            jnp.asarray(lo[list(below)]),
-        )  # fmt: skip
+        upper, lower = jnp.asarray(hi[list(above)]), jnp.asarray(lo[list(below)])
+        self.path = _StateBounds(self.path, tuple(map(int, above)), upper, tuple(map(int, below)), lower)
         self.path_names = (
             self.path_names
             + tuple(f"{self.state_names[i]} upper bound" for i in above)
@@ -275,18 +275,7 @@ class Problem(eqx.Module):
 
     def _add_running_cost(self):
         """The Mayer form: the accumulated cost as the last state (see the module docs)."""
-        L = self.running_cost
-        out = jax.eval_shape(
-            lambda t, x, u: L(t, x, u, self.args),
-            jax.ShapeDtypeStruct((), jnp.float64),
-            jax.ShapeDtypeStruct((self.num_states,), jnp.float64),
-            jax.ShapeDtypeStruct((self.num_controls,), jnp.float64),
-        )
-        if getattr(out, "shape", None) != ():
-            raise ValueError(
-                f"`running_cost(t, x, u, args)` must return a scalar; got {getattr(out, 'shape', type(out).__name__)}."
-            )
-        self.dynamics = _CostDynamics(self.dynamics, L)
+        self.dynamics = _CostDynamics(self.dynamics, self.running_cost)
         self.objective = _CostObjective(self.objective)
         self.terminal = _OnUserState(self.terminal)
         if self.path is not None:
