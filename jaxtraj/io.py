@@ -26,10 +26,11 @@ _DETAIL = "history_detail_"
 
 @contextlib.contextmanager
 def folder_lock(folder, what="`out`"):
-    """Hold an exclusive lock on `folder` (creating it; the lock is a `.lock` file in it) for
-    the `with` block: a second run that tries the same folder meanwhile gets a one-line
-    ValueError naming `what` instead of writing its files between the first run's. The lock
-    is released when the block ends or the process dies. (POSIX `flock`; elsewhere no lock.)"""
+    """Hold an exclusive lock on `folder` (creating it) for the `with` block: a second run
+    that tries the same folder meanwhile gets a one-line ValueError naming `what` instead of
+    writing its files between the first run's. The lock is an `flock` on the folder itself
+    (no file is added), released when the block ends or the process dies; on systems without
+    `flock` there is no lock."""
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{what}: {folder!r} is a file, not a folder.")
     os.makedirs(folder, exist_ok=True)
@@ -38,7 +39,7 @@ def folder_lock(folder, what="`out`"):
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    fd = os.open(os.path.join(folder, ".lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(folder, os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
