@@ -167,7 +167,7 @@ def _setup(problem_name, args):
         prob, ctrl, a0 = jt.problems.attitude.case()
         if args.control:
             ctrl = parse_control(args.control)
-            a0 = ctrl.initial_guess(float(a0[-1]), 0.0, 0.0)
+            a0 = ctrl.initial_guess(float(prob.args["tf"]), 0.0, 0.0)  # the maneuver time, solver units
         return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "8 segments", None
     if problem_name == "min-energy":
         prob = jt.problems.analytic.min_energy_double_integrator()
@@ -218,19 +218,17 @@ def load_user_problem(spec, args):
     except Exception as e:
         raise _UsageError(f"{spec} raised {type(e).__name__}: {e}") from None
     if isinstance(out, jt.Problem):
-        prob = out
+        prob, ctrl, a0 = out, None, None
+    elif isinstance(out, tuple) and len(out) == 3 and isinstance(out[0], jt.Problem):
+        prob, ctrl, a0 = out
+    else:
+        raise _UsageError(f"{spec} must return a jt.Problem or (problem, control, a0); got {type(out).__name__}")
+    if ctrl is None or args.control:  # a zero control over [0, --tf]
         ctrl = parse_control(args.control or f"linear:10:{prob.num_controls}")
         try:
             a0 = ctrl.initial_guess(args.tf, 0.0, 0.0)
         except ValueError as e:
             raise _UsageError(f"--tf: {e}") from None
-    elif isinstance(out, tuple) and len(out) == 3 and isinstance(out[0], jt.Problem):
-        prob, ctrl, a0 = out
-        if args.control:
-            ctrl = parse_control(args.control)
-            a0 = ctrl.initial_guess(args.tf, 0.0, 0.0)
-    else:
-        raise _UsageError(f"{spec} must return a jt.Problem or (problem, control, a0); got {type(out).__name__}")
     return prob, ctrl, a0
 
 

@@ -87,6 +87,8 @@ def test_solve_runs_a_users_own_problem_from_a_file(tmp_path):
     assert (out / "solution.png").exists()
     r = run("solve", "mine.py:broken", "--out", str(out), tmp_path=tmp_path)
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:broken raised RuntimeError: bad model"
+    r = run("solve", "mine.py:plane", "--tf", "-2", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --tf: `tf` must be a finite number > 0; got -2.0."
 
 
 @pytest.mark.parametrize(
