@@ -200,7 +200,7 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     same = ("solve", "min-energy", "--control", "linear:2", "--starts", "3", "--steps", "4", "--no-plot")
     cases = [
         ((*same, "--seed", "2", "--out", str(out)), "already holds a batch run (manifest.json); pass --resume"),
-        ((*same, "--seed", "3", "--out", str(out), "--resume"), "was started with different inputs (a0s_sha256"),
+        ((*same, "--seed", "3", "--out", str(out), "--resume"), "was started with different inputs (a0s changed)"),
     ]
     (out / "batch" / "chunk_00001.npz").write_bytes(b"")
     cases.append(((*same, "--seed", "2", "--out", str(out), "--resume"), "chunk_00001.npz is damaged"))
