@@ -284,16 +284,17 @@ class KalmanSQP(AbstractSolver):
         return d, lam_qp
 
     def release_inactive(self, ev: Evaluation, lam, lam_qp):
-        """`lam` with the multipliers of the path points that are strictly inactive (C <
+        """`lam` with the multipliers of the inequality rows that are strictly inactive (C <
         -`path_active`) and left out of the QP's active set set to 0 (complementarity). A
         multiplier kept there from a shortened step ((1 - alpha) of its old value) adds
         dnu C > 0 to the merit's slope along (d, lambda_qp - lambda); near the optimum that
         term outweighs -d^T B d and no direction is a descent one (measured on the attitude
         slew: nu = 9.5e-3 at C = -3.4e-6 made the slope +3.5e-8, STALLED)."""
-        if inequality_rows(ev) is None:
+        rows = inequality_rows(ev)
+        if rows is None:
             return lam
         m = ev.E.shape[0]
-        stale = (lam_qp[m:] == 0.0) & (inequality_rows(ev)[0] < -self.path_active)
+        stale = (lam_qp[m:] == 0.0) & (rows[0] < -self.path_active)
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
 
     @staticmethod

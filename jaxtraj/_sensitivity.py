@@ -283,7 +283,9 @@ def evaluate_restricted(problem, control, a, simulator, method="forward") -> Eva
     rows = bound_rows(problem, control, a)
     if rows is not None:
         path["V"], path["V_a"] = rows
-    status = Status.where(status == Status.SUCCESS, simulation_status(True, G, G_a, E, H, *path.values()), status)
+    # C and C_a were checked with the integration; the terminal inequalities are new here
+    extra = [path[k] for k in ("D", "D_a") if k in path]
+    status = Status.where(status == Status.SUCCESS, simulation_status(True, G, G_a, E, H, *extra), status)
     return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status, **path)
 
 

@@ -628,10 +628,7 @@ class SaturatedSpline(AbstractControl):
         degree 1), clipped to the bounds."""
         _check_guess(tf)
         P, q = self.segments, self.num_controls
-        us = np.broadcast_to(np.asarray(u_start, dtype=np.float64), (q,))
-        ue = np.broadcast_to(np.asarray(u_end, dtype=np.float64), (q,))
-        s = np.arange(P + 1) / P
-        c = us[:, None] + (ue - us)[:, None] * s[None, :]
+        c = _channel_line(1.0, u_start, u_end, np.arange(P + 1) / P, q).T  # (q, P + 1)
         c = np.clip(c, np.asarray(self.lower)[:, None], np.asarray(self.upper)[:, None])
         times = np.full(P, tf / P) if self.free_durations else np.array([tf])
         return jnp.asarray(np.concatenate([times, c.reshape(-1)]))
