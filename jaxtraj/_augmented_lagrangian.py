@@ -157,6 +157,10 @@ def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
         return ParameterBox(lower.at[times].set(min_duration), upper)
     if control.time_layout == "final_time":  # tf alone, equally spaced knots
         return ParameterBox(lower.at[times[0]].set(control.num_segments * min_duration), upper)
+    if control.time_layout == "fixed":  # no time parameter
+        return ParameterBox(lower, upper)
+    if control.time_layout == "interior_knots":  # t_1 < ... < t_(K-1) < T fixed
+        upper = upper.at[times[-1]].set(control.final_time - min_duration) if times.size else upper
     return ParameterBox(lower, upper, tuple(int(t) for t in times), float(min_duration))
 
 

@@ -52,7 +52,12 @@ def _parser():
     g = s.add_mutually_exclusive_group()
     g.add_argument("--case", type=int, help="earth-mars: published thesis case 1..7 (default 4)")
     g.add_argument("--control", help=f"control spec: {_CONTROLS}")
-    s.add_argument("--tf", type=float, default=1.0, help="your own problem: final time of the zero-control start")
+    s.add_argument(
+        "--tf",
+        type=float,
+        default=1.0,
+        help="your own problem: final time of the zero-control start (a problem's final_time wins)",
+    )
     s.add_argument(
         "--solver",
         help="default: the problem's own (earth-mars, min-energy, solar-sail: kalman; attitude and your own: sqp); "
@@ -226,7 +231,8 @@ def load_user_problem(spec, args):
     if ctrl is None or args.control:  # a zero control over [0, --tf]
         ctrl = parse_control(args.control or f"linear:10:{prob.num_controls}")
         try:
-            a0 = ctrl.initial_guess(args.tf, 0.0, 0.0)
+            tf = args.tf if prob.final_time is None else float(prob.final_time)  # a fixed one wins
+            a0 = ctrl.initial_guess(tf, 0.0, 0.0)
         except ValueError as e:
             raise _UsageError(f"--tf: {e}") from None
     return prob, ctrl, a0
@@ -349,7 +355,7 @@ def _solve(args):
 
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
     try:
-        a0 = check_inputs(prob, ctrl, a0)
+        ctrl, a0 = check_inputs(prob, ctrl, a0)
     except ValueError as e:
         raise _UsageError(f"{args.problem}: {e}") from None
     if args.solver == "kalman" and not isinstance(solver, jt.KalmanSearch):

@@ -83,7 +83,7 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     real = closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da)
     floor = gaps / (2.0 * a_t)
     limit = jnp.where(real & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
-    return da * jnp.minimum(1.0, jnp.min(limit)), P
+    return da * jnp.min(limit, initial=1.0), P
 
 
 #: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already

@@ -202,7 +202,8 @@ class KalmanSearch(AbstractSolver):
         r = e_m2 / 3.0  # [4.2]
         hh = jnp.sum(H * H, axis=1)
         e_ei = e_m2 / (3.0 * jnp.maximum(hh, 1e-300))  # [4.4]
-        e_e2 = jnp.where(phase == 0, jnp.max(e_ei), jnp.mean(e_ei))
+        # (0 without terminal constraints: the prior is then the gradient step's alone)
+        e_e2 = jnp.where(phase == 0, jnp.max(e_ei, initial=0.0), jnp.sum(e_ei) / max(e_ei.size, 1))
         uncorrelated = G_a == 0
         b = jnp.where(uncorrelated, self.beta_0 * beta / self.beta, beta)
         bp = jnp.where(uncorrelated, self.beta_p0 * beta_p / self.beta_p, beta_p)
@@ -289,7 +290,7 @@ class KalmanSearch(AbstractSolver):
         dE = jnp.abs(ev.H @ da)
         room = 2.0 * jnp.maximum(self.f_ea * e_a - jnp.abs(E), 0.0) / 3.0 + jnp.abs(E)
         cap = jnp.where(dE > room, room / jnp.maximum(dE, 1e-300), 1.0)
-        da = jnp.where(phase == 1, da * jnp.minimum(1.0, jnp.min(cap)), da)
+        da = jnp.where(phase == 1, da * jnp.min(cap, initial=1.0), da)
         return da, rho, beta, beta_p, ~ok
 
     # ------------------------------------------------------------------ state machine
@@ -307,7 +308,7 @@ class KalmanSearch(AbstractSolver):
             rho=jnp.asarray(self.rho, f),
             beta=jnp.asarray(self.beta, f),
             beta_p=jnp.asarray(self.beta_p, f),
-            phase=jnp.where(jnp.max(jnp.abs(_errors(ev, _values(ev)))) <= e_a0, 1, 0).astype(jnp.int32),
+            phase=jnp.where(jnp.max(jnp.abs(_errors(ev, _values(ev))), initial=0.0) <= e_a0, 1, 0).astype(jnp.int32),
             e_a=e_a0,
             da_pending=jnp.zeros_like(a0),
             has_pending=jnp.array(False),
@@ -381,7 +382,7 @@ class KalmanSearch(AbstractSolver):
         # the new current point
         new_a = jnp.where(accept, a + da, a)
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
-        maxE = jnp.max(jnp.abs(_errors(new_ev, _values(new_ev))))
+        maxE = jnp.max(jnp.abs(_errors(new_ev, _values(new_ev))), initial=0.0)
         new_phase = jnp.where(accept & (phase == 0) & (maxE <= e_a), 1, phase).astype(jnp.int32)
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
@@ -452,7 +453,7 @@ class KalmanSearch(AbstractSolver):
         return {
             "accepted": state.num_iterations,
             "objective": state.ev.G,
-            "max|E|": jnp.max(jnp.abs(state.ev.E)),
+            "max|E|": jnp.max(jnp.abs(state.ev.E), initial=0.0),
             "e_a": state.e_a,
             "rho": state.rho,
         }

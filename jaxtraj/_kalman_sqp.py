@@ -327,7 +327,7 @@ class KalmanSQP(AbstractSolver):
         return {
             "iterations": state.num_iterations,
             "objective": state.ev.G,
-            "max|E|": jnp.max(jnp.abs(state.ev.E)),
+            "max|E|": jnp.max(jnp.abs(state.ev.E), initial=0.0),
             **self.globalization.progress(state),
         }
 

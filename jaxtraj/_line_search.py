@@ -173,7 +173,7 @@ class LineSearch(eqx.Module):
         # Only a violation above `ctol` raises it: with E and C met (at round-off), the slope
         # hardly depends on mu, and the Newton step would ask for an enormous penalty whose
         # term mu/2 |E|^2 turns E's round-off into merit noise above any decrease.
-        infeasible = jnp.max(jnp.abs(ev.E)) > sqp.ctol
+        infeasible = jnp.max(jnp.abs(ev.E), initial=0.0) > sqp.ctol
         if C is not None:
             infeasible = infeasible | (jnp.max(C) > sqp.ctol)
 
@@ -295,7 +295,7 @@ class LineSearch(eqx.Module):
         new_a = jnp.where(accept, a + step_taken, a)
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
-        maxE = jnp.max(jnp.abs(new_ev.E))
+        maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
         pg = stationarity(new_ev, sqp.path_active)
         feasible = (maxE <= sqp.ctol) & (_max_inequality(new_ev) <= sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no

@@ -70,6 +70,10 @@ class Problem(eqx.Module):
     - `path_names`: a short name per component of C.
     - `terminal_inequality`: optional `D(tf, xf, args) -> (r,)` with D <= 0 required at tf.
     - `terminal_inequality_names`: a short name per component of D.
+    - `final_time`: optional fixed final time T > 0. Then tf is no decision parameter:
+      parameter vectors have no tf entry (every entry point wraps the control family in
+      `jt.controls.FixedFinalTime(control, T)`, which also accepts the family's full vector
+      with tf = T). Needs an `objective` or a `running_cost`.
     - `tf_bounds`: optional `(lower, upper)` on the free final time (either may be +-inf):
       terminal inequalities `lower - tf <= 0`, `tf - upper <= 0` named `"tf lower bound"` /
       `"tf upper bound"`, after the user's.
@@ -105,6 +109,7 @@ class Problem(eqx.Module):
     running_cost: Callable | None = None
     terminal_inequality: Callable | None = None
     terminal_inequality_names: tuple[str, ...] = ()
+    final_time: jax.Array | None = None
     _control_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     _label: "_Label" = None  # the name; see `name`
 
@@ -130,6 +135,7 @@ class Problem(eqx.Module):
         terminal_inequality=None,
         terminal_inequality_names=(),
         tf_bounds=None,
+        final_time=None,
         name="problem",
     ):
         x0 = np.asarray(x0, dtype=np.float64)
@@ -139,6 +145,21 @@ class Problem(eqx.Module):
             raise ValueError(f"`x0` must be finite; got {x0}.")
         if not (isinstance(num_controls, int) and num_controls >= 1):
             raise ValueError(f"`num_controls` must be an int >= 1; got {num_controls!r}.")
+        if final_time is not None:
+            try:
+                T = np.asarray(final_time, dtype=np.float64)
+            except (TypeError, ValueError):
+                T = np.asarray(np.nan)
+            if T.shape != () or not (np.isfinite(T) and T > 0):
+                raise ValueError(f"`final_time` must be a finite number > 0; got {final_time!r}.")
+            if tf_bounds is not None:
+                raise ValueError("`tf_bounds` bounds a free final time; give either `final_time` or `tf_bounds`.")
+            if objective is None and running_cost is None:
+                raise ValueError(
+                    "`final_time` is fixed, so the default objective (minimum time) is a constant: "
+                    "give an `objective` or a `running_cost`."
+                )
+            self.final_time = jnp.asarray(float(T), dtype=jnp.float64)
         if objective is None:
             objective = minimum_time if running_cost is None else no_mayer_term
         for fname, fn in (("dynamics", dynamics), ("terminal", terminal), ("objective", objective)):

@@ -198,7 +198,7 @@ def sensitivities(
     `jt.evaluate` for the status and the constraint/objective derivatives.
     """
     check_method(method)
-    a = check_inputs(problem, control, a)
+    control, a = check_inputs(problem, control, a)
     check_simulator(simulator)
     xf, jac, _ = _sensitivities(problem, control, a, simulator, method)
     return xf, jac
@@ -307,6 +307,6 @@ def evaluate(
     through x(tf) and tf(a). See `jt.sensitivities` for the arguments.
     """
     check_method(method)
-    a = check_inputs(problem, control, a)
+    control, a = check_inputs(problem, control, a)
     check_simulator(simulator)
     return evaluate_jitted(problem, control, a, simulator, method)

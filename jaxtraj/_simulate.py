@@ -24,7 +24,7 @@ from jax import lax
 from ._checks import check_inputs
 from ._problem import Problem
 from ._status import Status
-from .controls import AbstractControl
+from .controls import AbstractControl, FixedFinalTime
 
 
 class AbstractSimulator(eqx.Module):
@@ -205,6 +205,11 @@ def segment_data(control: AbstractControl, a):
 def rescaled_field(problem: Problem, control: AbstractControl):
     """`field(theta, tau, x) = h f(t_k + h tau, x, u(theta, tau))` for one row `theta` of
     `segment_data`."""
+    if problem.final_time is not None and not isinstance(control, FixedFinalTime):
+        raise ValueError(
+            f"`control`: problem {problem.name!r} fixes final_time, so the control must be "
+            "jt.controls.FixedFinalTime(family, T) (the public entry points wrap it)."
+        )
 
     def field(theta, tau, x):
         row, t_k, h = theta[:-2], theta[-2], theta[-1]
@@ -289,6 +294,6 @@ def simulate(problem: Problem, control: AbstractControl, a, *, simulator: Abstra
     **Raises:** `ValueError` for a parameter vector of the wrong length, non-finite
     entries, or times out of order (checked on concrete input, outside jit).
     """
-    a = check_inputs(problem, control, a)
+    control, a = check_inputs(problem, control, a)
     check_simulator(simulator)
     return _simulate(problem, control, a, simulator)

@@ -271,7 +271,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
 
     new = lambda c, o: jax.tree.map(lambda x, y: jnp.where(accept, x, y), c, o)
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, lam))
-    maxE = jnp.max(jnp.abs(new_ev.E))
+    maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
     pg = projected_gradient(new_ev.G_a, new_ev.H)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny))  # NaN radius too

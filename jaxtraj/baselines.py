@@ -102,13 +102,14 @@ class _CachedEvaluation:
 
 
 def _prepare(problem, control, a0, simulator, method):
-    """Checked inputs and the cached evaluation shared by both baselines (default RK4())."""
+    """The control the baselines work with, the checked start, and the cached evaluation
+    shared by both baselines (default RK4())."""
     simulator = RK4() if simulator is None else simulator
     check_method(method)
-    a0 = check_inputs(problem, control, a0)
+    control, a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     require_rows(problem, control, "the SLSQP / IPOPT baselines")
-    return a0, _CachedEvaluation(problem, control, simulator, method)
+    return control, a0, _CachedEvaluation(problem, control, simulator, method)
 
 
 def _knot_gap_constraint(control, a0):
@@ -121,6 +122,8 @@ def _knot_gap_constraint(control, a0):
         raise ValueError(f"`control.knots` is not affine in `a` for {control!r}; solve_slsqp needs it to be.")
     D = J[1:] - J[:-1]
     c = offset[1:] - offset[:-1] - MIN_KNOT_GAP
+    free = np.any(D != 0, axis=1)  # gaps fixed by a fixed final time are no constraint
+    D, c = D[free], c[free]
     return {"type": "ineq", "fun": lambda a: D @ a + c, "jac": lambda a: D}
 
 
@@ -159,11 +162,11 @@ def solve_slsqp(
     **Raises:** `ValueError` for invalid inputs (as `jt.evaluate`).
     """
     start = time.perf_counter()
-    a0, ev = _prepare(problem, control, a0, simulator, method)
-    constraints = [
-        {"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]},
-        _knot_gap_constraint(control, a0),
-    ]
+    control, a0, ev = _prepare(problem, control, a0, simulator, method)
+    constraints = [{"type": "eq", "fun": lambda a: ev(a)["E"], "jac": lambda a: ev(a)["H"]}]
+    gaps = _knot_gap_constraint(control, a0)
+    if gaps["jac"](None).shape[0]:
+        constraints.append(gaps)
     if ev(a0)["C"].size:  # inequalities (path, terminal); SLSQP's are fun >= 0
         constraints.append({"type": "ineq", "fun": lambda a: -ev(a)["C"], "jac": lambda a: -ev(a)["C_a"]})
     res = scipy.optimize.minimize(
@@ -277,7 +280,7 @@ def solve_ipopt(
     except ImportError as err:  # pragma: no cover - exercised only without the extra
         raise ImportError("solve_ipopt needs CasADi: `pip install jaxtraj[bench]` (or `pip install casadi`).") from err
     start = time.perf_counter()
-    a0, ev = _prepare(problem, control, a0, simulator, method)
+    control, a0, ev = _prepare(problem, control, a0, simulator, method)
     n, m = int(a0.shape[0]), problem.num_constraints
     p = ev(a0)["C"].size  # path constraint rows (grid points x components)
     gaps = _knot_gap_constraint(control, a0)

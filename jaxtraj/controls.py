@@ -42,7 +42,9 @@ class AbstractControl(eqx.Module):
     def time_layout(self) -> str:
         """How the entries `time_indices` make the knots: `"final_time"` (one entry, tf; equally
         spaced knots), `"knots"` (t_1 < ... < t_K = tf) or `"durations"` (h_1, ..., h_K >= 0,
-        tf = their sum). Solvers and batching derive time bounds and random starts from it."""
+        tf = their sum); for a fixed final time T (`FixedFinalTime`), `"fixed"` (no time
+        entries) or `"interior_knots"` (t_1 < ... < t_{K-1} < T). Solvers and batching derive
+        time bounds and random starts from it."""
 
     @property
     def num_controls(self) -> int:
@@ -644,8 +646,114 @@ class SaturatedSpline(AbstractControl):
             raise ValueError(f"`a`: {what} (a[{i}]) must be >= 0; got a[{i}] = {h[i]:g} (all: {h.tolist()}).")
 
 
+class FixedFinalTime(AbstractControl):
+    """`control` on [0, T] with the final time T fixed: its parameter vector without the tf
+    entry, so that tf is no decision parameter at all.
+
+    Built by every entry point (`jt.solve`, `jt.simulate`, ...) for a problem with
+    `final_time=T` from the family it is given; build it yourself to evaluate u(a, t) of a
+    solution (`sol.a` has no tf entry). From a family with equally spaced knots
+    (`time_layout` `"final_time"`) it drops tf (layout `"fixed"`: no time entries); from
+    free knot times (`"knots"`) it drops the last knot t_K = T (layout `"interior_knots"`).
+    Families whose durations are the times (`SaturatedSpline(free_durations=True)`) are
+    refused: tf = sum h_k is no single entry (use `free_durations=False`).
+    """
+
+    control: AbstractControl
+    final_time: jax.Array
+
+    def __init__(self, control, final_time):
+        if not isinstance(control, AbstractControl) or isinstance(control, FixedFinalTime):
+            raise ValueError(f"`control` must be a control family (jt.controls.*); got {type(control).__name__}.")
+        if control.time_layout not in ("final_time", "knots"):
+            raise ValueError(
+                f"`control`: {control!r} has time layout {control.time_layout!r}; a fixed final time needs "
+                "tf as one entry (layout 'final_time' or 'knots'), e.g. SaturatedSpline(free_durations=False)."
+            )
+        T = np.asarray(final_time, dtype=np.float64) if not isinstance(final_time, jax.core.Tracer) else final_time
+        if isinstance(T, np.ndarray) and not (T.shape == () and np.isfinite(T) and T > 0):
+            raise ValueError(f"`final_time` must be a finite number > 0; got {final_time!r}.")
+        self.control = control
+        self.final_time = jnp.asarray(T, dtype=jnp.float64)
+
+    @property
+    def tf_index(self) -> int:
+        """Index of tf in the family's vector (the lone time entry, or the last knot)."""
+        return self.control.time_indices[-1]
+
+    def expand(self, a):
+        """The family's vector: `a` with tf = T inserted."""
+        i = self.tf_index
+        return jnp.concatenate([a[:i], jnp.reshape(self.final_time, (1,)).astype(a.dtype), a[i:]])
+
+    def reduce(self, a_full):
+        """`a_full` (the family's vector) without its tf entry."""
+        return jnp.delete(jnp.asarray(a_full), self.tf_index)
+
+    def _shift(self, indices):
+        i = self.tf_index
+        return tuple(j if j < i else j - 1 for j in indices if j != i)
+
+    @property
+    def num_params(self):
+        return self.control.num_params - 1
+
+    @property
+    def num_segments(self):
+        return self.control.num_segments
+
+    @property
+    def num_controls(self):
+        return self.control.num_controls
+
+    @property
+    def time_indices(self):
+        return self._shift(self.control.time_indices)
+
+    @property
+    def time_layout(self):
+        return "fixed" if self.control.time_layout == "final_time" else "interior_knots"
+
+    @property
+    def value_indices(self):
+        idx, channel = self.control.value_indices
+        return self._shift(idx), tuple(channel)
+
+    @property
+    def limits(self):
+        return self.control.limits
+
+    @property
+    def value_bounds_exact(self):
+        return self.control.value_bounds_exact
+
+    @property
+    def affine(self):
+        return self.control.affine
+
+    def knots(self, a):
+        return self.control.knots(self.expand(a))
+
+    def segment_table(self, a):
+        return self.control.segment_table(self.expand(a))
+
+    def local_control(self, row, h, tau):
+        return self.control.local_control(row, h, tau)
+
+    def initial_guess(self, tf, u_start, u_end):
+        """The family's straight-line guess on [0, T] without tf; `tf` must be T."""
+        T = float(self.final_time)
+        if not np.isclose(float(tf), T, rtol=1e-12, atol=0.0):
+            raise ValueError(f"`tf` must be the fixed final time {T:g}; got {tf!r}.")
+        return self.reduce(self.control.initial_guess(T, u_start, u_end))
+
+    def _check_values(self, a):
+        self.control._check_values(np.asarray(self.expand(jnp.asarray(a))))
+
+
 __all__ = [
     "AbstractControl",
+    "FixedFinalTime",
     "PiecewiseConstant",
     "PiecewiseLinear",
     "PiecewiseParabolic",

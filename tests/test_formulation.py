@@ -3,9 +3,11 @@ against its Riccati solution; its sensitivities against finite differences), sta
 (Bryson-Denham against the analytic optimum), several control channels (a layout check
 against single-channel families, and a two-channel problem with a closed-form optimum)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_slsqp
@@ -74,17 +76,19 @@ def test_lq_running_cost_reaches_the_riccati_optimum():
     assert ref.success and abs(ref.objective - want) < 1e-6
 
 
-def bryson_denham(limit=1.0 / 9.0):
+def bryson_denham(limit=1.0 / 9.0, fixed=False):
     """x'' = u, (x, v)(0) = (0, 1), (x, v)(1) = (0, -1), x <= l, min 1/2 int u^2 dt: for
-    l <= 1/6 the optimum is J* = 4 / (9 l) (Bryson & Ho, sec. 3.11), 4 for l = 1/9."""
+    l <= 1/6 the optimum is J* = 4 / (9 l) (Bryson & Ho, sec. 3.11), 4 for l = 1/9. tf = 1 as
+    the terminal constraint tf - 1 = 0, or as `final_time=1` (`fixed`)."""
     return jt.Problem(
         lambda t, x, u, args: jnp.array([x[1], u[0]]),
         [0.0, 1.0],
-        lambda tf, xf, args: jnp.array([xf[0], xf[1] + 1.0, tf - 1.0]),
-        ("x", "v", "tf"),
+        lambda tf, xf, args: jnp.array([xf[0], xf[1] + 1.0] + ([] if fixed else [tf - 1.0])),
+        ("x", "v") + (() if fixed else ("tf",)),
         running_cost=lambda t, x, u, args: 0.5 * u[0] ** 2,
         state_names=("x", "v"),
         state_upper=[limit, np.inf],
+        final_time=1.0 if fixed else None,
         name="bryson-denham",
     )
 
@@ -169,17 +173,19 @@ def test_two_channel_rest_to_rest_reaches_the_closed_form_optimum():
     prob = jt.Problem(
         lambda t, x, u, args: jnp.concatenate([x[2:], u]),
         np.zeros(4),
-        lambda tf, xf, args: jnp.concatenate([xf - jnp.array([1.0, 2.0, 0.0, 0.0]), jnp.array([tf - 1.0])]),
-        ("x", "y", "vx", "vy", "tf"),
+        lambda tf, xf, args: xf - jnp.array([1.0, 2.0, 0.0, 0.0]),
+        ("x", "y", "vx", "vy"),
         num_controls=2,
         running_cost=lambda t, x, u, args: 0.5 * jnp.sum(u**2),
+        final_time=1.0,
     )
     ctrl = jt.controls.PiecewiseLinear(4, channels=2)
     sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), simulator=SIM)
     assert jt.status_name(sol.status) == "SUCCESS"
     np.testing.assert_allclose(float(sol.objective), 30.0, rtol=1e-9)
     t = np.linspace(0.0, 1.0, 9)
-    np.testing.assert_allclose(np.asarray(ctrl(sol.params, t)), np.outer(6 - 12 * t, [1.0, 2.0]), atol=1e-6)
+    fixed = jt.controls.FixedFinalTime(ctrl, 1.0)  # sol.params has no tf entry
+    np.testing.assert_allclose(np.asarray(fixed(sol.params, t)), np.outer(6 - 12 * t, [1.0, 2.0]), atol=1e-6)
     with pytest.raises(ValueError, match="channel"):
         jt.solve(prob, jt.controls.PiecewiseLinear(4), jnp.zeros(6))
 
@@ -213,6 +219,17 @@ def test_running_cost_compiles_once_across_problem_instances():
     assert after_first > 0 and len(traces) == after_first
     np.testing.assert_allclose(float(second.C.max()), 0.5 - 3.0, atol=1e-12)  # the new values were used
     assert float(first.C.max()) == pytest.approx(1.0 - 2.0)
+    # a fixed final time is an array too: another T is no new program
+    fixed = [jt.Problem(dynamics, [1.0], _NONE, (), running_cost=_HALF_U2, final_time=T) for T in (1.0, 2.0)]
+    a = ctrl.initial_guess(1.0, 0.0, 0.0)[:-1]
+    jt.evaluate(fixed[0], ctrl, a, simulator=SIM)
+    after_first = len(traces)
+    ev = jt.evaluate(fixed[1], ctrl, a, simulator=SIM)
+    assert len(traces) == after_first
+    assert float(ev.G) == pytest.approx(0.0) and float(ev.xf[0]) == pytest.approx(1.0)  # u = 0 over [0, 2]
+
+
+_NONE = lambda tf, xf, args: jnp.zeros(0)  # no terminal constraint
 
 
 _TF1 = _fixed_time(1.0)
@@ -228,12 +245,13 @@ def terminal_inequality_problem(cap):
     return jt.Problem(
         lambda t, x, u, args: u,
         [0.0],
-        _TF1,
-        ("tf",),
+        _NONE,
+        (),
         objective=lambda tf, xf, args: -2.0 * xf[0],
         running_cost=_HALF_U2,
         terminal_inequality=lambda tf, xf, args: jnp.array([xf[0] - cap]),
         terminal_inequality_names=("x(1) cap",),
+        final_time=1.0,
     )
 
 
@@ -357,3 +375,106 @@ def test_tf_bounds_reach_the_analytic_optimum():
     assert res.success and abs(res.tf - 2.0) < 1e-8 and abs(res.objective - 0.75) < 1e-8
     with pytest.raises(ValueError, match="tf_bounds"):
         jt.Problem(lambda t, x, u, a: x, [0.0], lambda tf, xf, a: xf, ("a",), tf_bounds=(3.0, 1.0))
+
+
+def lq_fixed_time():
+    """The LQ problem of `lq_problem` with `final_time=1` instead of the constraint tf - 1 = 0:
+    no terminal constraint at all (x(1) free), J* = tanh(1) / 2."""
+    return jt.Problem(
+        lambda t, x, u, args: u,
+        [1.0],
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        running_cost=lambda t, x, u, args: 0.5 * (x[0] ** 2 + u[0] ** 2),
+        final_time=1.0,
+        name="lq-fixed-time",
+    )
+
+
+@pytest.mark.parametrize(
+    "solver", [None, jt.KalmanSQP(hessian="exact", globalization="trust-region"), jt.KalmanSearch(), "al", "slsqp"]
+)
+def test_fixed_final_time_reaches_the_riccati_optimum_without_tf_in_the_vector(solver):
+    prob, family = lq_fixed_time(), jt.controls.PiecewiseLinear(20)
+    a0 = family.initial_guess(1.0, 0.0, 0.0)  # the family's vector, tf = 1: accepted, tf dropped
+    want = 0.5 * np.tanh(1.0)
+    if solver == "slsqp":
+        res = solve_slsqp(prob, family, a0, simulator=SIM)
+        ok, J, params = res.success, res.objective, res.params
+    else:
+        sol = jt.solve(prob, family, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
+        ok, J, params = jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
+        assert float(sol.tf) == 1.0
+    assert ok and abs(J - want) < 1e-6
+    assert np.shape(params) == (21,)  # the 21 node values; no tf entry
+    ctrl = jt.controls.FixedFinalTime(family, 1.0)
+    t = np.linspace(0.0, 1.0, 21)
+    np.testing.assert_allclose(np.asarray(ctrl(params, t))[:, 0], -np.sinh(1.0 - t) / np.cosh(1.0), atol=1e-3)
+
+
+def test_fixed_final_time_equals_the_terminal_constraint_formulation():
+    """Bryson-Denham with `final_time=1` and with the constraint tf - 1 = 0 on a free-tf family
+    are one problem: SLSQP reaches the same restricted optimum from the same start."""
+    free, fixed = bryson_denham(), bryson_denham(fixed=True)
+    family = jt.controls.PiecewiseLinear(10)
+    a0 = family.initial_guess(1.0, -6.0, 6.0)
+    ref, res = solve_slsqp(free, family, a0, simulator=SIM), solve_slsqp(fixed, family, a0, simulator=SIM)
+    assert ref.success and res.success
+    assert abs(res.objective - ref.objective) < 1e-8
+    np.testing.assert_allclose(res.params, np.asarray(ref.params)[:-1], atol=1e-5)
+    # the default solver from the same start and from round-off-sized perturbations of it
+    for start in perturbed_starts(a0[:-1]):  # the vector without tf
+        sol = jt.solve(fixed, family, start, simulator=SIM)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.objective) - ref.objective) < 1e-7
+
+
+def test_fixed_final_time_layouts_and_vectors():
+    T = 2.5
+    free_knots = jt.controls.FixedFinalTime(jt.controls.PiecewiseLinear(4, free_times=True), T)
+    assert free_knots.time_layout == "interior_knots" and free_knots.num_params == 8
+    a = free_knots.initial_guess(T, 0.0, 1.0)
+    np.testing.assert_allclose(np.asarray(free_knots.knots(a)), T * np.arange(5) / 4)
+    assert free_knots.time_indices == (5, 6, 7) and free_knots.value_indices[0] == (0, 1, 2, 3, 4)
+    spline = jt.controls.FixedFinalTime(jt.controls.SaturatedSpline(4, 1, -1.0, 1.0, free_durations=False), T)
+    assert spline.time_layout == "fixed" and spline.time_indices == () and spline.num_params == 5
+    assert spline.value_indices[0] == (0, 1, 2, 3, 4)
+    with pytest.raises(ValueError, match="free_durations=False"):
+        jt.controls.FixedFinalTime(jt.controls.SaturatedSpline(4, 1, -1.0, 1.0), T)
+    with pytest.raises(ValueError, match="`tf` must be the fixed final time"):
+        free_knots.initial_guess(1.0, 0.0, 1.0)
+    # simulate: the reduced vector and the family's own full vector give the same trajectory
+    prob = jt.Problem(
+        lambda t, x, u, args: u, [0.0], lambda tf, xf, args: xf, ("x",), objective=lambda tf, xf, args: xf[0]
+    )
+    fixed = jt.Problem(prob.dynamics, prob.x0, prob.terminal, ("x",), objective=prob.objective, final_time=T)
+    family = jt.controls.PiecewiseLinear(4, free_times=True)
+    full = np.asarray(family.initial_guess(T, 0.0, 1.0)) + np.array([0.1, 0, 0, 0, 0, 0.2, 0, 0, 0])
+    want = jt.simulate(prob, family, full, simulator=SIM)
+    for a in (full, free_knots.reduce(full)):
+        got = jt.simulate(fixed, family, a, simulator=SIM)
+        np.testing.assert_array_equal(np.asarray(got.x), np.asarray(want.x))
+    with pytest.raises(ValueError, match="`a` has tf = 3"):
+        jt.simulate(fixed, family, family.initial_guess(3.0, 0.0, 1.0), simulator=SIM)
+    with pytest.raises(ValueError, match=r"must be jt\.controls\.FixedFinalTime"):
+        jt._simulate.final_state(fixed, family, jnp.asarray(full), SIM)
+    # random starts keep t_K = T and the interior knots ordered
+    starts = jt.random_starts(fixed, family, jax.random.key(0), 16, full, spread=0.5)
+    assert starts.shape == (16, 8)
+    knots = np.asarray(jax.vmap(free_knots.knots)(starts))
+    assert np.all(knots[:, -1] == T) and np.all(np.diff(knots, axis=1) > 0)
+
+
+def test_fixed_final_time_errors_name_the_argument():
+    f, M = (lambda t, x, u, a: u), (lambda tf, xf, a: xf)
+    G = lambda tf, xf, a: xf[0]
+    with pytest.raises(ValueError, match="final_time"):
+        jt.Problem(f, [0.0], M, ("x",), objective=G, final_time=-1.0)
+    with pytest.raises(ValueError, match="either `final_time` or `tf_bounds`"):
+        jt.Problem(f, [0.0], M, ("x",), objective=G, final_time=1.0, tf_bounds=(0.5, 2.0))
+    with pytest.raises(ValueError, match="give an `objective` or a `running_cost`"):
+        jt.Problem(f, [0.0], M, ("x",), final_time=1.0)
+    prob = jt.Problem(f, [0.0], M, ("x",), objective=G, final_time=1.0)
+    other = jt.controls.FixedFinalTime(jt.controls.PiecewiseLinear(2), 2.0)
+    with pytest.raises(ValueError, match="fixes the final time at 2"):
+        jt.simulate(prob, other, other.initial_guess(2.0, 0.0, 0.0))

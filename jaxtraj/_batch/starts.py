@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_inputs
 from .._driver import AbstractSolver
 from .._solution import Solution
 from .._status import STATUS_NAMES, Status
@@ -43,7 +44,7 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     - Control values (the family's `value_indices`) are clipped to the bounds of the problem
       (`control_lower/upper`) and the family's own `limits`.
     """
-    around = jnp.asarray(control.validate(around))
+    control, around = check_inputs(problem, control, around)
     n = check_int("n", n, 1)
     typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ()
     raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
@@ -60,6 +61,8 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     jac = jac[:, t_idx]  # knots are linear in the time parameters
     t_spread = float(np.mean(spread[t_idx])) if t_idx.size else 0.0
     new_knots = np.concatenate([np.zeros((n, 1)), np.cumsum(gaps * np.exp(t_spread * z), axis=1)], axis=1)
+    if problem.final_time is not None:  # tf fixed: the perturbed gaps shared out over [0, T]
+        new_knots *= knots[-1] / new_knots[:, -1:]
     times = np.linalg.lstsq(jac, new_knots.T, rcond=None)[0].T
     # other entries: additive noise on their own scale, then the bounds
     vals = np.asarray(around)[other]

@@ -87,7 +87,7 @@ def simulate_closed_loop(
     """One run of u = u_ref(t) - K_k (x_k - x_ref_k) with noise; see `monte_carlo` for the
     model and the arguments. `key=None` runs without noise. Pure and jit-compiled; vmap it
     over keys for a batch (or use `monte_carlo`)."""
-    a = check_inputs(problem, control, a)
+    control, a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     N, n, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     gains = check_gains(gains, N, m, n)
@@ -240,7 +240,7 @@ def monte_carlo(
 
     **Returns:** `MonteCarloResult`.
     """
-    a = check_inputs(problem, control, a)
+    control, a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     if not (isinstance(n, int) and not isinstance(n, bool) and n >= 2):
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
