@@ -152,6 +152,9 @@ def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
         )
     if idx.size:
         lower, upper = lower.at[idx].set(lo), upper.at[idx].set(hi)
+    if problem.free_initial_state:
+        free = np.asarray(control.parameter_indices, int)
+        lower, upper = (b.at[free].set(v) for b, v in zip((lower, upper), problem.initial_state_bounds))
     times = np.asarray(control.time_indices, int)
     if control.time_layout == "durations":
         return ParameterBox(lower.at[times].set(min_duration), upper)

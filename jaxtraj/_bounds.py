@@ -13,6 +13,9 @@ A problem's `control_lower` / `control_upper` are honored in one of three ways:
 * otherwise a solver that relies on the rows raises a ValueError (`require_rows`): nothing
   is silently ignored.
 
+Bounds on free initial-state components (`Problem(free_initial_state={name: (lo, hi)})`)
+are rows of the same kind on their parameter entries.
+
 The rows are built from the problem's static copy of the bounds (`Problem._control_box`):
 which channels are bounded and whether a family saturates within the bounds fix the number
 of rows at trace time.
@@ -30,11 +33,18 @@ def declared(problem) -> bool:
     return bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
 
 
-def needs_rows(problem, control) -> bool:
-    """Whether the declared bounds need parameter rows (declared, and the family does not
-    saturate within them)."""
+def _control_rows(problem, control) -> bool:
+    """Whether the declared control bounds need parameter rows (declared, and the family
+    does not saturate within them)."""
     lo, hi = problem._control_box
     return declared(problem) and not saturates_within(control, np.asarray(lo), np.asarray(hi))
+
+
+def needs_rows(problem, control) -> bool:
+    """Whether the problem needs parameter rows: control bounds (`_control_rows`) or bounds
+    on free initial-state components."""
+    lo, hi = problem.initial_state_bounds
+    return _control_rows(problem, control) or bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
 
 
 def _exact(control) -> bool:
@@ -44,7 +54,7 @@ def _exact(control) -> bool:
 def require_rows(problem, control, who: str) -> None:
     """Raise a ValueError naming `who` if the declared bounds need parameter rows that the
     family cannot give (its value bounds are not exact)."""
-    if needs_rows(problem, control) and not _exact(control):
+    if _control_rows(problem, control) and not _exact(control):
         raise ValueError(
             f"`control`: {type(control).__name__} cannot take the problem's control_lower/control_upper "
             "as exact bounds on its parameters (`value_bounds_exact`) and does not saturate within them, "
@@ -54,16 +64,22 @@ def require_rows(problem, control, who: str) -> None:
 
 
 def bound_rows(problem, control, a):
-    """`(values (r,), Jacobian (r, np))` of the rows a_i - upper_j <= 0 and lower_j - a_i <= 0
-    over the control-value entries i (of channel j) with a finite bound, or None when no row
-    is needed or the family's value bounds are not exact (`require_rows` decides whether that
-    is an error)."""
-    if not (needs_rows(problem, control) and _exact(control)):
+    """`(values (r,), Jacobian (r, np))` of the rows a_i - upper <= 0 and lower - a_i <= 0:
+    over the control-value entries i (of channel j, bounds of channel j) with a finite
+    bound, unless no row is needed or the family's value bounds are not exact
+    (`require_rows` decides whether that is an error); then over the free initial-state
+    entries with a finite bound. None without rows."""
+    idx, lo, hi = np.zeros(0, int), np.zeros(0), np.zeros(0)
+    if _control_rows(problem, control) and _exact(control):
+        idx, channel = (np.asarray(v, int) for v in control.value_indices)
+        lo, hi = (np.asarray(b)[channel] for b in problem._control_box)
+    if problem.free_initial_state:
+        lo0, hi0 = problem.initial_state_bounds
+        idx = np.concatenate([idx, np.asarray(control.parameter_indices, int)])
+        lo, hi = np.concatenate([lo, lo0]), np.concatenate([hi, hi0])
+    upper, lower = np.isfinite(hi), np.isfinite(lo)
+    if not (upper.any() or lower.any()):
         return None
-    idx, channel = (np.asarray(v, int) for v in control.value_indices)
-    lo, hi = (np.asarray(b) for b in problem._control_box)
-    upper = np.isfinite(hi[channel])
-    lower = np.isfinite(lo[channel])
     eye = jnp.eye(a.shape[0], dtype=a.dtype)
-    values = jnp.concatenate([a[idx[upper]] - hi[channel[upper]], lo[channel[lower]] - a[idx[lower]]])
+    values = jnp.concatenate([a[idx[upper]] - hi[upper], lo[lower] - a[idx[lower]]])
     return values, jnp.concatenate([eye[idx[upper]], -eye[idx[lower]]])

@@ -3,10 +3,9 @@ types, the parameter vector. Errors name the argument."""
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._problem import Problem
-from .controls import AbstractControl, FixedFinalTime
+from .controls import AbstractControl, FixedFinalTime, FreeInitialState
 
 
 def require_float64():
@@ -37,10 +36,10 @@ def as_float64(x):
     return jnp.asarray(x, dtype=jnp.float64)
 
 
-def check_problem_and_control(problem: Problem, control: AbstractControl) -> AbstractControl:
-    """Outside-jit type and compatibility checks of the public entry points; returns the
-    control the solvers work with: for a problem with a fixed `final_time`, the family
-    wrapped in `FixedFinalTime` (its vector without tf)."""
+def check_problem_and_control(problem: Problem, control: AbstractControl):
+    """Outside-jit type and compatibility checks of the public entry points: for a problem
+    with a fixed `final_time` or a `free_initial_state`, `control` must be the problem's
+    parametrization of a family (`problem.parametrize(family)`)."""
     require_float64()
     if not isinstance(problem, Problem):
         raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
@@ -51,36 +50,30 @@ def check_problem_and_control(problem: Problem, control: AbstractControl) -> Abs
             f"`control` has {control.num_controls} channel(s) but `problem` {problem.name!r} "
             f"expects num_controls={problem.num_controls}."
         )
-    if problem.final_time is None:
-        return control
-    if not isinstance(control, FixedFinalTime):
-        return FixedFinalTime(control, problem.final_time)
-    if not isinstance(control.final_time, jax.core.Tracer) and not isinstance(problem.final_time, jax.core.Tracer):
-        if float(control.final_time) != float(problem.final_time):
-            raise ValueError(
-                f"`control` fixes the final time at {float(control.final_time):g} but `problem` "
-                f"{problem.name!r} has final_time={float(problem.final_time):g}."
-            )
-    return control
+    free = control.indices if isinstance(control, FreeInitialState) else ()
+    inner = control.control if isinstance(control, FreeInitialState) else control
+    T = inner.final_time if isinstance(inner, FixedFinalTime) else None
+    fits = free == problem.free_initial_state and (T is None) == (problem.final_time is None)
+    if fits and T is not None and not any(isinstance(v, jax.core.Tracer) for v in (T, problem.final_time)):
+        fits = float(T) == float(problem.final_time)
+    if not fits:
+        wants = []
+        if problem.final_time is not None:
+            wants.append(f"final_time={float(problem.final_time):g}")
+        if problem.free_initial_state:
+            wants.append(f"free initial states {[problem.state_names[i] for i in problem.free_initial_state]}")
+        raise ValueError(
+            f"`control` {control!r} does not fit problem {problem.name!r} "
+            f"({', '.join(wants) or 'no fixed final time, no free initial state'}): pass "
+            "`problem.parametrize(family)` for a control family (jt.controls.*)."
+        )
 
 
 def check_inputs(problem: Problem, control: AbstractControl, a):
-    """Outside-jit checks of the public entry points; returns the control the solvers work
-    with (`check_problem_and_control`) and `a` as a float64 array. For a fixed final time,
-    `a` may also be the family's own vector with tf = T (its tf entry is dropped)."""
-    given = control
-    control = check_problem_and_control(problem, control)
+    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+    check_problem_and_control(problem, control)
     if isinstance(a, jax.core.Tracer):
         if a.shape != (control.num_params,):
             raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
-        return control, a.astype(jnp.float64)
-    if control is not given and np.shape(a) == (given.num_params,):
-        full = given.validate(a)
-        tf, T = full[control.tf_index], float(control.final_time)
-        if not np.isclose(tf, T, rtol=1e-12, atol=0.0):
-            raise ValueError(
-                f"`a` has tf = {tf:g} (entry {control.tf_index}) but the problem fixes final_time={T:g}; "
-                f"pass a vector without tf ({control.num_params} entries) or one with tf = {T:g}."
-            )
-        a = control.reduce(full)
-    return control, jnp.asarray(control.validate(a))
+        return a.astype(jnp.float64)
+    return jnp.asarray(control.validate(a))

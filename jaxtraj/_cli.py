@@ -185,6 +185,17 @@ def _setup(problem_name, args):
             args.control or "linear:3",
             None,
         )
+    if problem_name in _gallery().names():
+        entry = _gallery().get(problem_name)
+        prob, ctrl, a0 = entry.problem, entry.control, entry.start
+        if args.control:
+            ctrl = prob.parametrize(parse_control(args.control))
+            tf = float(entry.control.tf(entry.start))  # the naive start's final time
+            try:
+                a0 = ctrl.initial_guess(tf, 0.0, 0.0)
+            except ValueError as e:
+                raise _UsageError(f"--control: {e}") from None
+        return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "naive start", None
     prob, ctrl, a0 = load_user_problem(problem_name, args)
     return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "own start", None
 
@@ -229,7 +240,7 @@ def load_user_problem(spec, args):
     else:
         raise _UsageError(f"{spec} must return a jt.Problem or (problem, control, a0); got {type(out).__name__}")
     if ctrl is None or args.control:  # a zero control over [0, --tf]
-        ctrl = parse_control(args.control or f"linear:10:{prob.num_controls}")
+        ctrl = prob.parametrize(parse_control(args.control or f"linear:10:{prob.num_controls}"))
         try:
             tf = args.tf if prob.final_time is None else float(prob.final_time)  # a fixed one wins
             a0 = ctrl.initial_guess(tf, 0.0, 0.0)
@@ -320,10 +331,18 @@ def _monte_carlo(prob, ctrl, sol, sim, args):
     }
 
 
+def _gallery():
+    """`jt.problems.classic` (imported on demand: it imports JAX)."""
+    from .problems import classic
+
+    return classic
+
+
 def _solve(args):
-    if args.problem not in _PROBLEMS and ":" not in args.problem:
+    known = (*_PROBLEMS, *_gallery().names())
+    if args.problem not in known and ":" not in args.problem:
         raise _UsageError(
-            f"unknown problem {args.problem!r}; available: {', '.join(_PROBLEMS)}, or path/to/file.py:function"
+            f"unknown problem {args.problem!r}; available: {', '.join(known)}, or path/to/file.py:function"
         )
     if args.solver is not None and args.solver not in _SOLVERS:
         raise _UsageError(f"unknown solver {args.solver!r}; available: {', '.join(_SOLVERS)}")
@@ -337,7 +356,7 @@ def _solve(args):
         if getattr(args, name) == "":
             raise _UsageError(f"--{name} must not be empty")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-    slug = args.problem if args.problem in _PROBLEMS else args.problem.rpartition(":")[2]
+    slug = args.problem if args.problem in known else args.problem.rpartition(":")[2]
     out = args.out or os.path.join("results", f"{slug}-{stamp}")
     _check_out(out)
 
@@ -355,7 +374,7 @@ def _solve(args):
 
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
     try:
-        ctrl, a0 = check_inputs(prob, ctrl, a0)
+        a0 = check_inputs(prob, ctrl, a0)
     except ValueError as e:
         raise _UsageError(f"{args.problem}: {e}") from None
     if args.solver == "kalman" and not isinstance(solver, jt.KalmanSearch):
@@ -506,6 +525,12 @@ def main(argv=None):
         if args.command == "problems":
             for name, text in _PROBLEMS.items():
                 print(f"{name:12s} {text}")
+            print("\nclassic gallery (jt.problems.classic; reference optimum, features):")
+            classic = _gallery()
+            for name in classic.names():
+                entry = classic.get(name)
+                print(f"{name:28s} {entry.reference:<10.7g} {', '.join(entry.features)}")
+            print()
             print(
                 "your own: path/to/file.py:function or module:function (returns a jt.Problem or (problem, control, a0))"
             )

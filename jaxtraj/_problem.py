@@ -39,6 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .controls import AbstractControl, FixedFinalTime, FreeInitialState
+
 
 def minimum_time(tf, xf, args):
     """The default objective G = tf."""
@@ -71,12 +73,17 @@ class Problem(eqx.Module):
     - `terminal_inequality`: optional `D(tf, xf, args) -> (r,)` with D <= 0 required at tf.
     - `terminal_inequality_names`: a short name per component of D.
     - `final_time`: optional fixed final time T > 0. Then tf is no decision parameter:
-      parameter vectors have no tf entry (every entry point wraps the control family in
-      `jt.controls.FixedFinalTime(control, T)`, which also accepts the family's full vector
-      with tf = T). Needs an `objective` or a `running_cost`.
+      parameter vectors have no tf entry (the control is `parametrize(family)`, a
+      `jt.controls.FixedFinalTime`). Needs an `objective` or a `running_cost`.
     - `tf_bounds`: optional `(lower, upper)` on the free final time (either may be +-inf):
       terminal inequalities `lower - tf <= 0`, `tf - upper <= 0` named `"tf lower bound"` /
       `"tf upper bound"`, after the user's.
+    - `free_initial_state`: initial-state components that are decision parameters too, as
+      a sequence of state names (or indices), or a dict `{name: (lower, upper)}` with
+      bounds (either may be +-inf). `x0` holds their start values. Parameter vectors then
+      end with these components (the control is `parametrize(family)`, a
+      `jt.controls.FreeInitialState`). A static design parameter p is a state with
+      dp/dt = 0 and a free initial value.
     - `name`: the problem's name, a label for reports, result files and plots.
 
     With a running cost the fields describe the Mayer form: `x0`, `num_states`,
@@ -110,6 +117,8 @@ class Problem(eqx.Module):
     terminal_inequality: Callable | None = None
     terminal_inequality_names: tuple[str, ...] = ()
     final_time: jax.Array | None = None
+    free_initial_state: tuple[int, ...] = eqx.field(static=True, default=())
+    _initial_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     _control_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     _label: "_Label" = None  # the name; see `name`
 
@@ -136,6 +145,7 @@ class Problem(eqx.Module):
         terminal_inequality_names=(),
         tf_bounds=None,
         final_time=None,
+        free_initial_state=(),
         name="problem",
     ):
         x0 = np.asarray(x0, dtype=np.float64)
@@ -204,6 +214,7 @@ class Problem(eqx.Module):
             raise ValueError(f"`name` must be a str; got {type(name).__name__}.")
         self._label = _Label(name)
         self._check_signatures()
+        self._set_free_initial_state(free_initial_state)
         if state_lower is not None or state_upper is not None:
             self._add_state_bounds(state_lower, state_upper)
         if tf_bounds is not None:
@@ -257,6 +268,61 @@ class Problem(eqx.Module):
                     f"(n={n} states, nu={nu} controls, {self.num_constraints} constraint names); "
                     f"got {getattr(out, 'shape', type(out).__name__)}."
                 )
+
+    @property
+    def initial_state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(lower, upper)`, one entry per `free_initial_state` component (+-inf: unbounded)."""
+        return np.asarray(self._initial_box[0], float), np.asarray(self._initial_box[1], float)
+
+    def parametrize(self, family: AbstractControl) -> AbstractControl:
+        """The control the solvers optimize for this problem, from a control family: the
+        family itself, or for a fixed `final_time` `FixedFinalTime(family, T)` (no tf entry),
+        then for a `free_initial_state` `FreeInitialState(..., indices, x0[indices])` (those
+        components appended). Pass it to every entry point and evaluate u with it:
+        `ctrl = prob.parametrize(jt.controls.PiecewiseLinear(10))`,
+        `a0 = ctrl.initial_guess(T, u0, u1)`, `ctrl(sol.params, t)`."""
+        if not isinstance(family, AbstractControl) or isinstance(family, (FixedFinalTime, FreeInitialState)):
+            raise ValueError(f"`family` must be a control family (jt.controls.*); got {family!r}.")
+        control = family if self.final_time is None else FixedFinalTime(family, self.final_time)
+        if self.free_initial_state:
+            control = FreeInitialState(control, self.free_initial_state, self.x0[np.asarray(self.free_initial_state)])
+        return control
+
+    def _set_free_initial_state(self, free):
+        """`free_initial_state` (names or indices, or a dict of them to bounds) as indices and
+        static bounds (they fix the bound rows at trace time, as `_control_box`)."""
+        if isinstance(free, str):
+            raise ValueError(f"`free_initial_state` must be a sequence of state names, not one string; got {free!r}.")
+        items = list(free.items()) if isinstance(free, dict) else [(k, (-np.inf, np.inf)) for k in free]
+        indices, lower, upper = [], [], []
+        for key, bounds in items:
+            if isinstance(key, str) and key in self.state_names:
+                i = self.state_names.index(key)
+            elif isinstance(key, (int, np.integer)) and not isinstance(key, bool) and 0 <= key < self.num_states:
+                i = int(key)
+            else:
+                raise ValueError(
+                    f"`free_initial_state`: {key!r} is no state (names {self.state_names}, or indices "
+                    f"0..{self.num_states - 1})."
+                )
+            try:
+                lo, hi = (float(v) for v in bounds)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"`free_initial_state`: the bounds of {key!r} must be a pair (lower, upper); got {bounds!r}."
+                ) from None
+            if np.isnan(lo) or np.isnan(hi) or lo > hi or not lo <= float(self.x0[i]) <= hi:
+                raise ValueError(
+                    f"`free_initial_state`: {key!r} needs lower <= x0 <= upper; got ({lo}, {hi}) with "
+                    f"x0 = {float(self.x0[i])}."
+                )
+            if i in indices:
+                raise ValueError(f"`free_initial_state`: {key!r} is given twice.")
+            indices.append(i)
+            lower.append(lo)
+            upper.append(hi)
+        self.free_initial_state = tuple(indices)
+        self._initial_box = (tuple(lower), tuple(upper))
 
     def _add_state_bounds(self, lower, upper):
         """Append x_i - upper_i <= 0 and lower_i - x_i <= 0 (finite bounds only) to `path`."""

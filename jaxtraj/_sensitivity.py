@@ -30,6 +30,7 @@ from ._simulate import (
     AbstractSimulator,
     check_simulator,
     final_state,
+    initial_state,
     integrate_segments,
     rescaled_field,
     segment_data,
@@ -39,6 +40,11 @@ from ._status import Status
 from .controls import AbstractControl
 
 METHODS = ("forward", "unit", "fd")
+
+
+def _initial(problem, control, a):
+    """x(0) and dx(0)/da (zero unless initial-state components are parameters)."""
+    return initial_state(problem, control, a), jax.jacfwd(lambda a: initial_state(problem, control, a))(a)
 
 
 def forward_jacobian(problem, control, a, simulator):
@@ -55,7 +61,7 @@ def forward_jacobian(problem, control, a, simulator):
     data = segment_data(control, a)
     data_a = jax.jacfwd(segment_data, argnums=1)(control, a)  # (K, m + 2, np)
     field = rescaled_field(problem, control)
-    x0 = problem.x0.astype(a.dtype)
+    x0, x0_a = _initial(problem, control, a)
     basis = _affine_segment_basis(control, a)
     if basis is None:
         segments = (data, data_a)
@@ -76,7 +82,7 @@ def forward_jacobian(problem, control, a, simulator):
         x1, x1_a, ok = linearized(*carry, *segment)
         return (x1, x1_a), ok
 
-    init = (x0, jnp.zeros((x0.shape[0], a.shape[0]), a.dtype))
+    init = (x0, x0_a)
     (xf, jac), oks = lax.scan(body, init, segments)
     return xf, jac, simulation_status(jnp.all(oks), xf, jac)
 
@@ -109,7 +115,6 @@ def unit_jacobian(problem, control, a, simulator):
     data_a = jax.jacfwd(segment_data, argnums=1)(control, a)
     dknots = jax.jacfwd(control.knots)(a)  # (K + 1, np): dt_q/da
     K = control.num_segments
-    n, npar = problem.num_states, a.shape[0]
 
     def f(t, x, u):
         return problem.dynamics(t, x, u, problem.args)
@@ -144,7 +149,7 @@ def unit_jacobian(problem, control, a, simulator):
         df = f(theta[-2], x, u_minus) - f(theta[-2], x, u_plus)
         return x, p + jnp.where(k > 0, jnp.outer(df, dknots[k]), 0.0)
 
-    y0 = (problem.x0.astype(a.dtype), jnp.zeros((n, npar), a.dtype))
+    y0 = _initial(problem, control, a)
     (xf, p), _, ok = integrate_segments(simulator, field, (data, data_a), y0, jump=jump)
     last = data[K - 1]
     f_end = f(last[-2] + last[-1], xf, control.local_control(last[:-2], last[-1], 1.0))
@@ -198,7 +203,7 @@ def sensitivities(
     `jt.evaluate` for the status and the constraint/objective derivatives.
     """
     check_method(method)
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator(simulator)
     xf, jac, _ = _sensitivities(problem, control, a, simulator, method)
     return xf, jac
@@ -234,7 +239,9 @@ def path_values(problem, control, a, simulator):
     of the integration grid, segment after segment (`Trajectory` order: a knot appears as
     the end of one segment and the start of the next, with the control of each side)."""
     field = rescaled_field(problem, control)
-    xf, xs, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True)
+    xf, xs, ok = integrate_segments(
+        simulator, field, segment_data(control, a), initial_state(problem, control, a), dense=True
+    )
     knots = control.knots(a)
     grid = jnp.asarray(simulator.dense_grid())
     K, S = knots.shape[0] - 1, grid.shape[0]
@@ -307,6 +314,6 @@ def evaluate(
     through x(tf) and tf(a). See `jt.sensitivities` for the arguments.
     """
     check_method(method)
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator(simulator)
     return evaluate_jitted(problem, control, a, simulator, method)

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._checks import check_inputs
+from ._checks import check_inputs, check_problem_and_control
 from ._problem import Problem
 from ._status import Status
-from .controls import AbstractControl, FixedFinalTime
+from .controls import AbstractControl
 
 
 class AbstractSimulator(eqx.Module):
@@ -205,11 +205,7 @@ def segment_data(control: AbstractControl, a):
 def rescaled_field(problem: Problem, control: AbstractControl):
     """`field(theta, tau, x) = h f(t_k + h tau, x, u(theta, tau))` for one row `theta` of
     `segment_data`."""
-    if problem.final_time is not None and not isinstance(control, FixedFinalTime):
-        raise ValueError(
-            f"`control`: problem {problem.name!r} fixes final_time, so the control must be "
-            "jt.controls.FixedFinalTime(family, T) (the public entry points wrap it)."
-        )
+    check_problem_and_control(problem, control)  # at trace time: a fixed final time, free x0
 
     def field(theta, tau, x):
         row, t_k, h = theta[:-2], theta[-2], theta[-1]
@@ -219,10 +215,15 @@ def rescaled_field(problem: Problem, control: AbstractControl):
     return field
 
 
+def initial_state(problem: Problem, control: AbstractControl, a):
+    """x(0) for parameters `a`: the problem's x0, with its free components (if any) from `a`."""
+    return control.initial_state(problem.x0.astype(a.dtype), a)
+
+
 def final_state(problem: Problem, control: AbstractControl, a, simulator: AbstractSimulator):
     """x(tf) and the status of the integration (pure; jit/vmap/jacfwd-able)."""
     field = rescaled_field(problem, control)
-    xf, _, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype))
+    xf, _, ok = integrate_segments(simulator, field, segment_data(control, a), initial_state(problem, control, a))
     return xf, simulation_status(ok, xf)
 
 
@@ -259,7 +260,9 @@ def check_simulator(simulator):
 def _simulate(problem, control, a, simulator):
     field = rescaled_field(problem, control)
     K = control.num_segments
-    xf, xs, ok = integrate_segments(simulator, field, segment_data(control, a), problem.x0.astype(a.dtype), dense=True)
+    xf, xs, ok = integrate_segments(
+        simulator, field, segment_data(control, a), initial_state(problem, control, a), dense=True
+    )
     knots = control.knots(a)
     grid = jnp.asarray(simulator.dense_grid())
     h = knots[1:] - knots[:-1]
@@ -294,6 +297,6 @@ def simulate(problem: Problem, control: AbstractControl, a, *, simulator: Abstra
     **Raises:** `ValueError` for a parameter vector of the wrong length, non-finite
     entries, or times out of order (checked on concrete input, outside jit).
     """
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator(simulator)
     return _simulate(problem, control, a, simulator)

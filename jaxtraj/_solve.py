@@ -48,7 +48,7 @@ def solve(
     **Raises:** `ValueError` for bad input (outside jit).
     """
     solver, max_steps = check_solver(solver, max_steps)
-    control, a0 = check_inputs(problem, control, a0)
+    a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")

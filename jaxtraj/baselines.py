@@ -106,7 +106,7 @@ def _prepare(problem, control, a0, simulator, method):
     shared by both baselines (default RK4())."""
     simulator = RK4() if simulator is None else simulator
     check_method(method)
-    control, a0 = check_inputs(problem, control, a0)
+    a0 = check_inputs(problem, control, a0)
     check_simulator(simulator)
     require_rows(problem, control, "the SLSQP / IPOPT baselines")
     return control, a0, _CachedEvaluation(problem, control, simulator, method)

@@ -48,8 +48,17 @@ def test_solve_writes_results_that_load_back(tmp_path):
 def test_problems_lists_the_problems(tmp_path):
     r = run("problems", tmp_path=tmp_path)
     assert r.returncode == 0 and "linear:K" in r.stdout and "file.py:function" in r.stdout
-    for name in ("earth-mars", "min-energy", "solar-sail", "attitude"):
+    for name in ("earth-mars", "min-energy", "solar-sail", "attitude", *jt.problems.classic.names()):
         assert name in r.stdout
+
+
+def test_solve_runs_a_gallery_problem(tmp_path):
+    out = tmp_path / "max-range"
+    r = run("solve", "max-range", "--steps", "40", "--out", str(out), tmp_path=tmp_path)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    # u = +1 then -1 over [0, 1] from rest: x(1) = 1/4 (the objective is -x(1))
+    assert summary["status"] == "SUCCESS" and abs(summary["objective"] + 0.25) < 1e-9
 
 
 USER_PROBLEM = """

@@ -179,13 +179,12 @@ def test_two_channel_rest_to_rest_reaches_the_closed_form_optimum():
         running_cost=lambda t, x, u, args: 0.5 * jnp.sum(u**2),
         final_time=1.0,
     )
-    ctrl = jt.controls.PiecewiseLinear(4, channels=2)
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(4, channels=2))  # no tf entry
     sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), simulator=SIM)
     assert jt.status_name(sol.status) == "SUCCESS"
     np.testing.assert_allclose(float(sol.objective), 30.0, rtol=1e-9)
     t = np.linspace(0.0, 1.0, 9)
-    fixed = jt.controls.FixedFinalTime(ctrl, 1.0)  # sol.params has no tf entry
-    np.testing.assert_allclose(np.asarray(fixed(sol.params, t)), np.outer(6 - 12 * t, [1.0, 2.0]), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(ctrl(sol.params, t)), np.outer(6 - 12 * t, [1.0, 2.0]), atol=1e-6)
     with pytest.raises(ValueError, match="channel"):
         jt.solve(prob, jt.controls.PiecewiseLinear(4), jnp.zeros(6))
 
@@ -222,9 +221,9 @@ def test_running_cost_compiles_once_across_problem_instances():
     # a fixed final time is an array too: another T is no new program
     fixed = [jt.Problem(dynamics, [1.0], _NONE, (), running_cost=_HALF_U2, final_time=T) for T in (1.0, 2.0)]
     a = ctrl.initial_guess(1.0, 0.0, 0.0)[:-1]
-    jt.evaluate(fixed[0], ctrl, a, simulator=SIM)
+    jt.evaluate(fixed[0], fixed[0].parametrize(ctrl), a, simulator=SIM)
     after_first = len(traces)
-    ev = jt.evaluate(fixed[1], ctrl, a, simulator=SIM)
+    ev = jt.evaluate(fixed[1], fixed[1].parametrize(ctrl), a, simulator=SIM)
     assert len(traces) == after_first
     assert float(ev.G) == pytest.approx(0.0) and float(ev.xf[0]) == pytest.approx(1.0)  # u = 0 over [0, 2]
 
@@ -258,7 +257,8 @@ def terminal_inequality_problem(cap):
 @pytest.mark.parametrize("cap", [1.0, 3.0])
 @pytest.mark.parametrize("solver", ["default", "kalman-search", "slsqp"])
 def test_terminal_inequality_reaches_the_analytic_optimum(cap, solver):
-    prob, ctrl = terminal_inequality_problem(cap), jt.controls.PiecewiseLinear(3)
+    prob = terminal_inequality_problem(cap)
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(3))
     u = min(2.0, cap)
     want = 0.5 * u**2 - 2.0 * u
     a0 = ctrl.initial_guess(1.0, 0.0, 0.0)
@@ -278,7 +278,8 @@ def test_terminal_inequality_reaches_the_analytic_optimum(cap, solver):
 
 
 def test_solvers_without_terminal_inequalities_refuse_them():
-    prob, ctrl = terminal_inequality_problem(1.0), jt.controls.PiecewiseLinear(3)
+    prob = terminal_inequality_problem(1.0)
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(3))
     a0 = ctrl.initial_guess(1.0, 0.0, 0.0)
     with pytest.raises(ValueError, match="terminal inequalities"):
         jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian(), simulator=SIM)
@@ -395,19 +396,19 @@ def lq_fixed_time():
     "solver", [None, jt.KalmanSQP(hessian="exact", globalization="trust-region"), jt.KalmanSearch(), "al", "slsqp"]
 )
 def test_fixed_final_time_reaches_the_riccati_optimum_without_tf_in_the_vector(solver):
-    prob, family = lq_fixed_time(), jt.controls.PiecewiseLinear(20)
-    a0 = family.initial_guess(1.0, 0.0, 0.0)  # the family's vector, tf = 1: accepted, tf dropped
+    prob = lq_fixed_time()
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(20))
+    a0 = ctrl.initial_guess(1.0, 0.0, 0.0)  # 21 node values, no tf
     want = 0.5 * np.tanh(1.0)
     if solver == "slsqp":
-        res = solve_slsqp(prob, family, a0, simulator=SIM)
+        res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
         ok, J, params = res.success, res.objective, res.params
     else:
-        sol = jt.solve(prob, family, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
+        sol = jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
         ok, J, params = jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
         assert float(sol.tf) == 1.0
     assert ok and abs(J - want) < 1e-6
     assert np.shape(params) == (21,)  # the 21 node values; no tf entry
-    ctrl = jt.controls.FixedFinalTime(family, 1.0)
     t = np.linspace(0.0, 1.0, 21)
     np.testing.assert_allclose(np.asarray(ctrl(params, t))[:, 0], -np.sinh(1.0 - t) / np.cosh(1.0), atol=1e-3)
 
@@ -417,14 +418,14 @@ def test_fixed_final_time_equals_the_terminal_constraint_formulation():
     are one problem: SLSQP reaches the same restricted optimum from the same start."""
     free, fixed = bryson_denham(), bryson_denham(fixed=True)
     family = jt.controls.PiecewiseLinear(10)
-    a0 = family.initial_guess(1.0, -6.0, 6.0)
-    ref, res = solve_slsqp(free, family, a0, simulator=SIM), solve_slsqp(fixed, family, a0, simulator=SIM)
+    a0, ctrl = family.initial_guess(1.0, -6.0, 6.0), fixed.parametrize(family)
+    ref, res = solve_slsqp(free, family, a0, simulator=SIM), solve_slsqp(fixed, ctrl, a0[:-1], simulator=SIM)
     assert ref.success and res.success
     assert abs(res.objective - ref.objective) < 1e-8
     np.testing.assert_allclose(res.params, np.asarray(ref.params)[:-1], atol=1e-5)
     # the default solver from the same start and from round-off-sized perturbations of it
     for start in perturbed_starts(a0[:-1]):  # the vector without tf
-        sol = jt.solve(fixed, family, start, simulator=SIM)
+        sol = jt.solve(fixed, ctrl, start, simulator=SIM)
         assert jt.status_name(sol.status) == "SUCCESS"
         assert abs(float(sol.objective) - ref.objective) < 1e-7
 
@@ -443,23 +444,25 @@ def test_fixed_final_time_layouts_and_vectors():
         jt.controls.FixedFinalTime(jt.controls.SaturatedSpline(4, 1, -1.0, 1.0), T)
     with pytest.raises(ValueError, match="`tf` must be the fixed final time"):
         free_knots.initial_guess(1.0, 0.0, 1.0)
-    # simulate: the reduced vector and the family's own full vector give the same trajectory
+    # simulate: the reduced vector gives the family's trajectory with tf = T
     prob = jt.Problem(
         lambda t, x, u, args: u, [0.0], lambda tf, xf, args: xf, ("x",), objective=lambda tf, xf, args: xf[0]
     )
     fixed = jt.Problem(prob.dynamics, prob.x0, prob.terminal, ("x",), objective=prob.objective, final_time=T)
     family = jt.controls.PiecewiseLinear(4, free_times=True)
+    assert fixed.parametrize(family) == free_knots and prob.parametrize(family) is family
     full = np.asarray(family.initial_guess(T, 0.0, 1.0)) + np.array([0.1, 0, 0, 0, 0, 0.2, 0, 0, 0])
     want = jt.simulate(prob, family, full, simulator=SIM)
-    for a in (full, free_knots.reduce(full)):
-        got = jt.simulate(fixed, family, a, simulator=SIM)
-        np.testing.assert_array_equal(np.asarray(got.x), np.asarray(want.x))
-    with pytest.raises(ValueError, match="`a` has tf = 3"):
-        jt.simulate(fixed, family, family.initial_guess(3.0, 0.0, 1.0), simulator=SIM)
-    with pytest.raises(ValueError, match=r"must be jt\.controls\.FixedFinalTime"):
+    got = jt.simulate(fixed, free_knots, free_knots.reduce(full), simulator=SIM)
+    np.testing.assert_array_equal(np.asarray(got.x), np.asarray(want.x))
+    # the bare family (whose last entry would be read as tf) is refused, at the entry points
+    # and inside jit
+    with pytest.raises(ValueError, match=r"problem\.parametrize\(family\)"):
+        jt.simulate(fixed, family, full, simulator=SIM)
+    with pytest.raises(ValueError, match=r"problem\.parametrize\(family\)"):
         jt._simulate.final_state(fixed, family, jnp.asarray(full), SIM)
     # random starts keep t_K = T and the interior knots ordered
-    starts = jt.random_starts(fixed, family, jax.random.key(0), 16, full, spread=0.5)
+    starts = jt.random_starts(fixed, free_knots, jax.random.key(0), 16, free_knots.reduce(full), spread=0.5)
     assert starts.shape == (16, 8)
     knots = np.asarray(jax.vmap(free_knots.knots)(starts))
     assert np.all(knots[:, -1] == T) and np.all(np.diff(knots, axis=1) > 0)
@@ -476,5 +479,97 @@ def test_fixed_final_time_errors_name_the_argument():
         jt.Problem(f, [0.0], M, ("x",), final_time=1.0)
     prob = jt.Problem(f, [0.0], M, ("x",), objective=G, final_time=1.0)
     other = jt.controls.FixedFinalTime(jt.controls.PiecewiseLinear(2), 2.0)
-    with pytest.raises(ValueError, match="fixes the final time at 2"):
+    with pytest.raises(ValueError, match="does not fit problem"):
         jt.simulate(prob, other, other.initial_guess(2.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="`family` must be a control family"):
+        prob.parametrize(other)
+
+
+def free_start_problem(bounds=None):
+    """x' = u, x(1) = 1, min 1/2 int (x^2 + u^2) dt with x(0) free: the transversality
+    condition lambda(0) = 0 gives x = cosh(t) / cosh(1), x(0) = 1 / cosh(1), J* = tanh(1) / 2.
+    With x(0) bounded below by x_lo > 1 / cosh(1) the bound is active and
+    x = x_lo cosh(t) + B sinh(t), B = (1 - x_lo cosh(1)) / sinh(1), J* = (x'(1) - x_lo B) / 2."""
+    return jt.Problem(
+        lambda t, x, u, args: u,
+        [1.0],  # the start value of x(0)
+        lambda tf, xf, args: xf - 1.0,
+        ("x(1)",),
+        running_cost=lambda t, x, u, args: 0.5 * (x[0] ** 2 + u[0] ** 2),
+        final_time=1.0,
+        state_names=("x",),
+        free_initial_state={"x": bounds} if bounds else ("x",),
+    )
+
+
+@pytest.mark.parametrize("solver", [None, jt.KalmanSearch(), "al", "slsqp"])
+@pytest.mark.parametrize("x_lo", [None, 0.8])
+def test_free_initial_state_reaches_the_analytic_optimum(solver, x_lo):
+    prob = free_start_problem(None if x_lo is None else (x_lo, 2.0))
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(20))
+    a0 = ctrl.initial_guess(1.0, 0.0, 0.0)
+    assert ctrl.num_params == 22 and float(a0[-1]) == 1.0  # 21 node values, then x(0)'s start
+    if x_lo is None:
+        x_start, want = 1.0 / np.cosh(1.0), 0.5 * np.tanh(1.0)
+    else:
+        B = (1.0 - x_lo * np.cosh(1.0)) / np.sinh(1.0)
+        x_start, want = x_lo, 0.5 * (x_lo * np.sinh(1.0) + B * np.cosh(1.0) - x_lo * B)
+    if solver == "slsqp":
+        res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
+        ok, J, params = res.success, res.objective, res.params
+    else:
+        sol = jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
+        ok, J, params = jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
+    assert ok
+    # KalmanSearch stops on its own (looser) stationarity test
+    assert abs(J - want) < (1e-4 if isinstance(solver, jt.KalmanSearch) else 1e-6)
+    assert abs(float(params[-1]) - x_start) < (1e-2 if isinstance(solver, jt.KalmanSearch) else 1e-4)
+    traj = jt.simulate(prob, ctrl, params, simulator=SIM)
+    assert float(traj.x[0, 0]) == float(params[-1])  # the trajectory starts there
+
+
+def test_free_initial_state_sensitivities_match_finite_differences():
+    prob = free_start_problem((0.0, 2.0))
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(4, free_times=True))
+    a = ctrl.initial_guess(1.0, 0.3, -0.2) + 0.05 * jnp.cos(jnp.arange(9.0))
+    _, forward = jt.sensitivities(prob, ctrl, a, "forward", simulator=SIM)
+    _, unit = jt.sensitivities(prob, ctrl, a, "unit", simulator=SIM)
+    _, fd = jt.sensitivities(prob, ctrl, a, "fd", simulator=SIM)
+    np.testing.assert_allclose(np.asarray(forward), np.asarray(fd), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(unit), np.asarray(forward), rtol=1e-7, atol=1e-9)
+    # x(1) = x(0) + int u: dx(1)/dx(0) = 1
+    np.testing.assert_allclose(np.asarray(forward)[0, -1], 1.0, rtol=1e-12)
+
+
+def test_a_design_parameter_is_a_constant_state_with_a_free_start():
+    """x' = u, x(0) = 0, x(1) = p with p' = 0 free in [0, 5], min 1/2 int u^2 + (p - 2)^2 / 2:
+    u = p, J = p^2 / 2 + (p - 2)^2 / 2, so p* = 1, J* = 1 (exact for linear controls)."""
+    prob = jt.Problem(
+        lambda t, x, u, args: jnp.array([u[0], 0.0]),
+        [0.0, 0.0],
+        lambda tf, xf, args: jnp.array([xf[0] - xf[1]]),
+        ("x(1) = p",),
+        objective=lambda tf, xf, args: 0.5 * (xf[1] - 2.0) ** 2,
+        running_cost=_HALF_U2,
+        final_time=1.0,
+        state_names=("x", "p"),
+        free_initial_state={"p": (0.0, 5.0)},
+    )
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(2))
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), simulator=SIM)
+    assert jt.status_name(sol.status) == "SUCCESS"
+    assert abs(float(sol.objective) - 1.0) < 1e-9 and abs(float(sol.params[-1]) - 1.0) < 1e-8
+
+
+def test_free_initial_state_errors_name_the_argument():
+    f, M = (lambda t, x, u, a: u), (lambda tf, xf, a: xf)
+    with pytest.raises(ValueError, match="`free_initial_state`: 'y' is no state"):
+        jt.Problem(f, [0.0], M, ("x",), free_initial_state=("y",))
+    with pytest.raises(ValueError, match="lower <= x0 <= upper"):
+        jt.Problem(f, [0.0], M, ("x",), free_initial_state={0: (1.0, 2.0)})
+    with pytest.raises(ValueError, match="not one string"):
+        jt.Problem(f, [0.0], M, ("x",), free_initial_state="x1")
+    prob = jt.Problem(f, [0.0], M, ("x",), free_initial_state=(0,))
+    family = jt.controls.PiecewiseLinear(2)
+    with pytest.raises(ValueError, match=r"free initial states \['x1'\]"):
+        jt.simulate(prob, family, family.initial_guess(1.0, 0.0, 0.0))

@@ -102,7 +102,7 @@ def solve_batch(
     other inputs (`resume=True`) or any run (`resume=False`).
     """
     solver, max_steps = check_solver(solver, max_steps)
-    control = check_problem_and_control(problem, control)
+    check_problem_and_control(problem, control)
     check_simulator(simulator)
     a0s = _check_a0s(control, a0s)
     n = a0s.shape[0]

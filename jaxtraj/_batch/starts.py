@@ -42,9 +42,10 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     - Every other entry gets additive noise spread * s * z, with s the RMS of those entries
       of `around` (1 if they are all zero); `spread` may also be an array `(num_params,)`.
     - Control values (the family's `value_indices`) are clipped to the bounds of the problem
-      (`control_lower/upper`) and the family's own `limits`.
+      (`control_lower/upper`) and the family's own `limits`, free initial-state components
+      to theirs.
     """
-    control, around = check_inputs(problem, control, around)
+    around = check_inputs(problem, control, around)
     n = check_int("n", n, 1)
     typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ()
     raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
@@ -71,6 +72,9 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     starts[:, t_idx] = times
     idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
     starts[:, idx] = np.clip(starts[:, idx], np.asarray(lo), np.asarray(hi))
+    if problem.free_initial_state:  # free initial-state components within their bounds
+        idx = np.asarray(control.parameter_indices, int)
+        starts[:, idx] = np.clip(starts[:, idx], *problem.initial_state_bounds)
     # check the promise (vectorized version of control.validate's ordering checks)
     kn = np.asarray(_all_knots(control, jnp.asarray(starts)))
     if not (np.all(np.isfinite(starts)) and np.all(np.diff(kn, axis=1) > 0) and np.all(kn[:, -1] > 0)):

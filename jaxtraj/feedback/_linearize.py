@@ -112,7 +112,7 @@ def linearize(problem, control, a, *, simulator=RK4(), execution=None) -> Linear
     **Returns:** a `Linearization`. Jit-compiled; usable under `jax.vmap` over `a`.
     Feed it to `tracking_lqr` (or to `continuous_lqr` / `discrete_lqr` directly).
     """
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     execution = check_execution(execution, problem)
     p = execution.num_noise(problem.num_controls)

@@ -87,7 +87,7 @@ def simulate_closed_loop(
     """One run of u = u_ref(t) - K_k (x_k - x_ref_k) with noise; see `monte_carlo` for the
     model and the arguments. `key=None` runs without noise. Pure and jit-compiled; vmap it
     over keys for a batch (or use `monte_carlo`)."""
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     N, n, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     gains = check_gains(gains, N, m, n)
@@ -99,7 +99,7 @@ def simulate_closed_loop(
 def _closed_loop(problem, control, a, key, gains, noise, steps):
     grid, x_ref = noise_free(problem, control, a, steps)
     K = gain_sequence(gains, grid.t)
-    x0, xf, xs, du, _ = rollout(problem, control, noise, grid, x_ref[:-1], K, key, True)
+    x0, xf, xs, du, _ = rollout(problem, control, noise, grid, x_ref[0], x_ref[:-1], K, key, True)
     rows, h = grid.theta[:, :-2], grid.theta[:, -1]
     u = bounded_control(problem, jax.vmap(control.local_control)(rows, h, grid.tau) + du)
     return ClosedLoopTrajectory(
@@ -240,7 +240,7 @@ def monte_carlo(
 
     **Returns:** `MonteCarloResult`.
     """
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     if not (isinstance(n, int) and not isinstance(n, bool) and n >= 2):
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
@@ -292,7 +292,9 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
     tf = grid.t[-1]
 
     def run(i):
-        x0, xf, xs, _, du2 = rollout(problem, control, noise, grid, x_ref[:-1], K, jax.random.fold_in(key, i), save)
+        x0, xf, xs, _, du2 = rollout(
+            problem, control, noise, grid, x_ref[0], x_ref[:-1], K, jax.random.fold_in(key, i), save
+        )
         return xf, (jnp.concatenate([x0[None], xs]) if save else None), du2
 
     xfs, xs, du2 = jax.vmap(run)(jnp.arange(n))

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .._checks import as_float64
-from .._simulate import rk4_step, segment_data
+from .._simulate import initial_state, rk4_step, segment_data
 from ._common import check_shape
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import DiscreteLQRGains, LQRGains
@@ -64,13 +64,14 @@ class Noise(eqx.Module):
     L0: jax.Array | None  # square root of the initial-state covariance
 
 
-def rollout(problem, control, noise, grid, x_ref, K, key, save):
-    """One run over the sample grid. `K=None`: no feedback; `key=None`: no noise.
+def rollout(problem, control, noise, grid, x_start, x_ref, K, key, save):
+    """One run over the sample grid from the nominal initial state `x_start` (dispersed by
+    the noise). `K=None`: no feedback; `key=None`: no noise.
 
     Returns `(x0, xf, xs (N, n) or None, dus (N, m) or None, int du^2 dt (m,))`.
     """
     n, m, p = problem.num_states, problem.num_controls, noise.num_xi
-    x0 = problem.x0
+    x0 = x_start
     xi = jnp.zeros((p,))
     noisy = key is not None and (p > 0 or noise.Lw is not None)
     if key is not None:
@@ -111,8 +112,9 @@ def noise_free(problem, control, a, steps):
     grid = _grid(control, a, steps)
     exact = Noise(Exact(), 0, jnp.zeros(()), None, None)
     no_ref = jnp.zeros((grid.tau.shape[0], 0))  # not used without feedback
-    _, _, xs, _, _ = rollout(problem, control, exact, grid, no_ref, None, None, True)
-    return grid, jnp.concatenate([problem.x0[None], xs])
+    x0 = initial_state(problem, control, a)  # free initial-state components from `a`
+    _, _, xs, _, _ = rollout(problem, control, exact, grid, x0, no_ref, None, None, True)
+    return grid, jnp.concatenate([x0[None], xs])
 
 
 def gain_sequence(gains, t):

@@ -1,3 +1,9 @@
 """Problem families: `earth_mars` (seed 000), `solar_sail` (seed 003), `attitude` (seed 002) and small problems with analytic answers."""
 
-from . import analytic as analytic, attitude as attitude, earth_mars as earth_mars, solar_sail as solar_sail
+from . import (
+    analytic as analytic,
+    attitude as attitude,
+    classic as classic,
+    earth_mars as earth_mars,
+    solar_sail as solar_sail,
+)

@@ -381,7 +381,7 @@ def cone_margin(problem: Problem, control, a, grid_factor: int = 10, simulator: 
         raise ValueError(f"`grid_factor` must be an int >= 1; got {grid_factor!r}.")
     _representation(problem)
     check_simulator(simulator)
-    control, a = check_inputs(problem, control, a)
+    a = check_inputs(problem, control, a)
     traj = simulate(problem, control, a, simulator=_finer(simulator, grid_factor))
     margins = np.asarray(jax.vmap(lambda x: boresight_margin(problem, x))(traj.x))
     i = int(np.argmin(margins))

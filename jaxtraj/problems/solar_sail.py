@@ -356,7 +356,7 @@ def _terminal_errors(problem, control, a, simulator):
 def _check_params(problem, control, a):
     """Like the library's input checks, but a point a search may return (tf = 0, zero-length
     segments) is accepted: shape, finiteness and non-decreasing knots only."""
-    control = check_problem_and_control(problem, control)
+    check_problem_and_control(problem, control)
     if isinstance(a, jax.core.Tracer):
         if a.shape != (control.num_params,):
             raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")

@@ -1,0 +1,113 @@
+"""The classic-problem gallery (`jt.problems.classic`): every problem from its naive start
+with every solver, against the problem's independent reference optimum.
+
+Per problem and solver: status, objective, gap to the reference (objective - reference; the
+continuous optimum, so a restricted control may sit above it by up to the problem's `gap`),
+whether the run is "at the reference" (SUCCESS and |gap| <= gap), iterations, first call
+(compile + solve) and warm time (best of 2). A SUCCESS more than `gap` above the reference,
+or below it by more than the tolerance, is flagged `FALSE-SUCCESS?`: a SUCCESS must be a
+local optimum of the restricted problem, so it should be checked against the others.
+
+Solvers: KalmanSQP (default), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and, when CasADi
+is installed, IPOPT (both on the same compiled evaluation). A solver that cannot honor a
+problem's constraints raises; the table says `refused`.
+
+Run: `python benchmarks/gallery.py [--problems lq bryson-denham] [--solvers default slsqp]`.
+"""
+
+import argparse
+import os
+import platform
+import time
+
+import jax
+import numpy as np
+
+import jaxtraj as jt
+from jaxtraj.baselines import solve_ipopt, solve_slsqp
+
+try:
+    import casadi  # noqa: F401
+
+    HAVE_CASADI = True
+except ImportError:
+    HAVE_CASADI = False
+
+CLASSIC = jt.problems.classic
+SIM = jt.RK4(40)
+
+
+def _run_jaxtraj(solver):
+    def run(entry):
+        sol = jt.solve(entry.problem, entry.control, entry.start, solver, simulator=SIM)
+        return jt.status_name(sol.status), float(sol.objective), int(sol.iterations)
+
+    return run
+
+
+def _run_baseline(fn):
+    def run(entry):
+        res = fn(entry.problem, entry.control, entry.start, simulator=SIM)
+        return ("SUCCESS" if res.success else "FAILED"), float(res.objective), int(res.iterations)
+
+    return run
+
+
+SOLVERS = {
+    "default": _run_jaxtraj(None),
+    "kalman-search": _run_jaxtraj(jt.KalmanSearch()),
+    "augmented-lagrangian": _run_jaxtraj(jt.AugmentedLagrangian()),
+    "slsqp": _run_baseline(solve_slsqp),
+}
+if HAVE_CASADI:
+    SOLVERS["ipopt"] = _run_baseline(solve_ipopt)
+
+
+def measure(entry, run):
+    t0 = time.perf_counter()
+    try:
+        status, J, its = run(entry)
+    except ValueError as err:
+        return {"status": "refused", "why": str(err).split(".")[0][:60]}
+    first = time.perf_counter() - t0
+    warm = float("inf")
+    for _ in range(2):
+        t0 = time.perf_counter()
+        run(entry)
+        warm = min(warm, time.perf_counter() - t0)
+    gap = J - entry.reference
+    at = status == "SUCCESS" and -1e-6 * (1 + abs(entry.reference)) <= gap <= entry.gap
+    if status == "SUCCESS" and not at:
+        status = "FALSE-SUCCESS?"
+    return {"status": status, "J": J, "gap": gap, "at": at, "its": its, "first": first, "warm": warm}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--problems", nargs="*", default=list(CLASSIC.names()))
+    parser.add_argument("--solvers", nargs="*", default=list(SOLVERS))
+    args = parser.parse_args()
+    print(f"# gallery: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, jax {jax.__version__}")
+    print(f"# {time.strftime('%Y-%m-%d')}; RK4(40) per segment; naive starts")
+    header = "| problem | reference | solver | status | objective | gap | at ref | its | first (s) | warm (s) |"
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    tally = {s: 0 for s in args.solvers}
+    for name in args.problems:
+        entry = CLASSIC.get(name)
+        for sname in args.solvers:
+            r = measure(entry, SOLVERS[sname])
+            if r["status"] == "refused":
+                print(f"| {name} | {entry.reference:.7g} | {sname} | refused | | | | | | |")
+                continue
+            tally[sname] += bool(r["at"])
+            print(
+                f"| {name} | {entry.reference:.7g} | {sname} | {r['status']} | {r['J']:.9g} | {r['gap']:.2e} | "
+                f"{'yes' if r['at'] else 'no'} | {r['its']} | {r['first']:.2f} | {r['warm']:.3f} |"
+            )
+    n = len(args.problems)
+    print("\nat the reference from the naive start: " + ", ".join(f"{s} {k}/{n}" for s, k in tally.items()))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,183 @@
+"""The control interface (`AbstractControl`) and the bounds helpers solvers use."""
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class AbstractControl(eqx.Module):
+    """A parametrized control u(a, t) on [0, tf(a)], piecewise on `num_segments` segments."""
+
+    @property
+    @abc.abstractmethod
+    def num_params(self) -> int:
+        """Length of the parameter vector `a`."""
+
+    @property
+    @abc.abstractmethod
+    def num_segments(self) -> int:
+        """Number of segments between knots."""
+
+    @property
+    @abc.abstractmethod
+    def time_indices(self) -> tuple[int, ...]:
+        """Indices of the entries of `a` that are times (node/switch times, durations, tf)."""
+
+    @property
+    @abc.abstractmethod
+    def time_layout(self) -> str:
+        """How the entries `time_indices` make the knots: `"final_time"` (one entry, tf; equally
+        spaced knots), `"knots"` (t_1 < ... < t_K = tf) or `"durations"` (h_1, ..., h_K >= 0,
+        tf = their sum); for a fixed final time T (`FixedFinalTime`), `"fixed"` (no time
+        entries) or `"interior_knots"` (t_1 < ... < t_{K-1} < T). Solvers and batching derive
+        time bounds and random starts from it."""
+
+    @property
+    def num_controls(self) -> int:
+        """Number of control channels."""
+        return 1
+
+    @property
+    def value_indices(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """`(indices, channels)`: the entries of `a` that are control values (u at a node, a
+        level, a spline coefficient), and the channel of each. Solvers impose a bound on u as
+        the same bound on these entries: exact for piecewise linear and constant controls and
+        splines, on the nodes only for parabolic arcs. Default: none."""
+        return (), ()
+
+    @property
+    def limits(self) -> tuple[jax.Array, jax.Array] | None:
+        """`(lower, upper)` `(num_controls,)` if the family saturates u by construction, else
+        None."""
+        return None
+
+    #: u is, channel by channel, a convex combination of the `value_indices` entries (at every
+    #: t): bounds on those entries are then exact bounds on u, which solvers use to honor a
+    #: problem's control bounds. Declare it only when true (default False).
+    value_bounds_exact: ClassVar[bool] = False
+
+    #: `segment_data` (the knots and `segment_table`) is affine in `a`; the sensitivities then
+    #: differentiate each integration step along fewer directions. Declare it only when true:
+    #: the default, False, is always correct.
+    affine: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def knots(self, a) -> jax.Array:
+        """Segment boundaries `(num_segments + 1,)`: 0 = t_0 < t_1 < ... < t_K = tf."""
+
+    @abc.abstractmethod
+    def segment_table(self, a) -> jax.Array:
+        """Per-segment shape coefficients, shape `(num_segments, m)`: row k holds everything
+        (besides the knots) that the control on segment k depends on."""
+
+    @abc.abstractmethod
+    def local_control(self, row, h, tau) -> jax.Array:
+        """Control `(num_controls,)` from one row of `segment_table`, the segment's duration
+        `h` and the rescaled time tau in [0, 1]."""
+
+    @abc.abstractmethod
+    def initial_guess(self, tf, u_start, u_end) -> jax.Array:
+        """Parameters approximating the straight line u = u_start + (u_end - u_start) t / tf
+        with equally spaced nodes."""
+
+    def _check_values(self, a: np.ndarray) -> None:
+        """Family-specific value checks (outside jit); raise ValueError."""
+
+    def initial_state(self, x0, a) -> jax.Array:
+        """The initial state for parameters `a`: `x0` (a problem's), unless some of its
+        components are parameters too (`FreeInitialState`)."""
+        del a
+        return x0
+
+    # ------------------------------------------------------------------ shared behaviour
+
+    def tf(self, a) -> jax.Array:
+        """Final time tf(a)."""
+        return self.knots(a)[-1]
+
+    def segment_control(self, a, k, tau) -> jax.Array:
+        """Control `(num_controls,)` on segment `k` (may be traced) at rescaled time tau."""
+        knots = self.knots(a)
+        return self.local_control(self.segment_table(a)[k], knots[k + 1] - knots[k], tau)
+
+    def __call__(self, a, t) -> jax.Array:
+        """u(a, t) for scalar or array `t` in [0, tf]; right-continuous at knots, u(tf) is
+        the left limit. Returns shape `t.shape + (num_controls,)`."""
+        a = jnp.asarray(a)
+        knots = self.knots(a)
+        t = jnp.asarray(t, dtype=knots.dtype)
+        k = jnp.clip(jnp.searchsorted(knots, t, side="right") - 1, 0, self.num_segments - 1)
+        h = knots[k + 1] - knots[k]
+        tau = jnp.where(h > 0, (t - knots[k]) / jnp.where(h > 0, h, 1.0), 0.0)
+        flat_k, flat_tau = k.reshape(-1), tau.reshape(-1)
+        u = jax.vmap(lambda kk, tt: self.segment_control(a, kk, tt))(flat_k, flat_tau)
+        return u.reshape((*t.shape, self.num_controls))
+
+    def validate(self, a) -> np.ndarray:
+        """Check a concrete parameter vector outside jit; return it as float64 numpy.
+
+        **Raises:** `ValueError` naming the argument, what was expected and what was received.
+        """
+        name = type(self).__name__
+        arr = np.asarray(a)
+        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+            raise ValueError(f"`a` must be a real numeric array for {self!r}; got dtype {arr.dtype}.")
+        arr = arr.astype(np.float64)
+        if arr.shape != (self.num_params,):
+            raise ValueError(f"`a` must have shape ({self.num_params},) for {self!r}; got shape {arr.shape}.")
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            raise ValueError(
+                f"`a` must be finite; got non-finite entries at indices {bad.tolist()} (values {arr[bad].tolist()})."
+            )
+        # concrete values even when called while tracing (e.g. a constant `a` closed over
+        # by a jitted function)
+        with jax.ensure_compile_time_eval():
+            self._check_values(arr)
+            knots = np.asarray(self.knots(jnp.asarray(arr)))
+        if not knots[-1] > 0:
+            raise ValueError(f"`a`: the final time tf must be > 0 for {name}; got tf = {knots[-1]}.")
+        return arr
+
+    def _check_increasing(self, knots: np.ndarray, what: str) -> None:
+        d = np.diff(knots)
+        bad = np.flatnonzero(d <= 0)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"`a`: {what} must be strictly increasing in (0, tf] with tf = {knots[-1]:g}; "
+                f"expected t_{i} < t_{i + 1}, got t_{i} = {knots[i]:g}, t_{i + 1} = {knots[i + 1]:g} "
+                f"(all knots: {np.array2string(knots, precision=6)})."
+            )
+
+
+def saturates_within(control: AbstractControl, lower=None, upper=None) -> bool:
+    """Whether the family's own `limits` keep u within `lower`/`upper` (a problem's control
+    bounds; None: unbounded). False for traced bounds (not decidable at trace time)."""
+    if control.limits is None:
+        return False
+    try:
+        lo, hi = (np.asarray(x) for x in control.limits)
+        inside_lo = lower is None or np.all(lo >= np.asarray(lower))
+        inside_hi = upper is None or np.all(hi <= np.asarray(upper))
+    except jax.errors.TracerArrayConversionError:
+        return False
+    return bool(inside_lo and inside_hi)
+
+
+def value_bounds(control: AbstractControl, lower=None, upper=None):
+    """`(indices, lo, hi)`: the entries of `a` that are control values (`value_indices`) and
+    their bounds, from `lower`/`upper` `(num_controls,)` (a problem's control bounds; None:
+    unbounded) intersected with the family's own `limits`. Traceable (jnp)."""
+    idx, channel = control.value_indices
+    q = control.num_controls
+    lo = jnp.full(q, -jnp.inf) if lower is None else jnp.broadcast_to(jnp.asarray(lower, jnp.float64), (q,))
+    hi = jnp.full(q, jnp.inf) if upper is None else jnp.broadcast_to(jnp.asarray(upper, jnp.float64), (q,))
+    if control.limits is not None:
+        lo, hi = jnp.maximum(lo, control.limits[0]), jnp.minimum(hi, control.limits[1])
+    channel = np.asarray(channel, int)
+    return np.asarray(idx, int), lo[channel], hi[channel]

@@ -1,0 +1,90 @@
+"""The classic-problem gallery (`jt.problems.classic`): its references against independent
+computations, the restricted optimum by SciPy SLSQP (a second solver on the same
+evaluation) within each problem's gap, and the default solver from the naive start."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.optimize
+
+import jaxtraj as jt
+from jaxtraj.baselines import solve_slsqp
+
+CLASSIC = jt.problems.classic
+SIM = jt.RK4(40)
+
+
+def test_brachistochrone_reference_is_the_cycloid_and_dymos_value():
+    # the cycloid x = R (phi - sin phi), y = -R (1 - cos phi) through (10, -5), by its own
+    # parametrization: the time is phi_f sqrt(R / g); Dymos' documented optimum is 1.8016
+    g = 9.80665
+
+    def miss(v):
+        R, phi = v
+        return [R * (phi - np.sin(phi)) - 10.0, R * (1.0 - np.cos(phi)) - 5.0]
+
+    R, phi = scipy.optimize.fsolve(miss, [4.0, 3.0], xtol=1e-14)
+    np.testing.assert_allclose(CLASSIC.get("brachistochrone").reference, phi * np.sqrt(R / g), rtol=1e-12)
+    assert abs(CLASSIC.get("brachistochrone").reference - 1.8016) < 5e-5
+
+
+def test_hypersensitive_reference_matches_the_indirect_solution():
+    assert abs(CLASSIC.hypersensitive_reference() - CLASSIC.HYPERSENSITIVE_REFERENCE) < 1e-7
+
+
+def test_moon_lander_reference_is_the_coast_then_burn_landing():
+    """Simulate the closed-form landing independently (scipy, exact polynomial motion):
+    coast to the switch s, then full thrust; it must touch down at rest, with fuel sqrt(68)."""
+    s = (-4.0 + np.sqrt(68.0)) / 3.0
+    burn = (2.0 + 1.5 * s) / 1.5
+
+    def rhs(t, y):
+        u = 0.0 if t < s else 3.0
+        return [y[1], u - 1.5, u]
+
+    out = scipy.integrate.solve_ivp(rhs, (0.0, s + burn), [10.0, -2.0, 0.0], rtol=1e-12, atol=1e-12, t_eval=[s + burn])
+    np.testing.assert_allclose(out.y[:2, -1], [0.0, 0.0], atol=1e-8)
+    np.testing.assert_allclose(out.y[2, -1], CLASSIC.get("moon-lander").reference, rtol=1e-10)
+
+
+def test_gallery_lists_every_feature():
+    features = {f for name in CLASSIC.names() for f in CLASSIC.get(name).features}
+    for want in (
+        "free tf, minimum time",
+        "fixed tf, Mayer objective",
+        "running cost",
+        "bang-bang",
+        "state path constraint",
+        "singular arc",
+        "several controls",
+        "design parameter",
+        "free initial state",
+        "sensitive / unstable",
+        "terminal inequality",
+    ):
+        assert want in features
+    assert len(CLASSIC.names()) >= 10
+    with pytest.raises(ValueError, match="`name` must be one of"):
+        CLASSIC.get("nope")
+
+
+@pytest.mark.parametrize("name", CLASSIC.names())
+def test_slsqp_reaches_each_reference_within_its_gap(name):
+    entry = CLASSIC.get(name)
+    res = solve_slsqp(entry.problem, entry.control, entry.start, simulator=SIM)
+    assert res.success
+    gap = res.objective - entry.reference
+    assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
+    traj = jt.simulate(entry.problem, entry.control, res.params, simulator=SIM)
+    E = entry.problem.terminal(traj.tf, traj.xf, entry.problem.args)
+    assert float(jnp.max(jnp.abs(E), initial=0.0)) < 1e-6
+
+
+@pytest.mark.parametrize("name", ["brachistochrone", "moon-lander", "singular-arc", "max-range", "hypersensitive"])
+def test_default_solver_reaches_the_reference_from_the_naive_start(name):
+    entry = CLASSIC.get(name)
+    sol = jt.solve(entry.problem, entry.control, entry.start, simulator=SIM)
+    assert jt.status_name(sol.status) == "SUCCESS"
+    gap = float(sol.objective) - entry.reference
+    assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
