@@ -21,7 +21,6 @@ import platform
 import time
 
 import jax
-import numpy as np
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
