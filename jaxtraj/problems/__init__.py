@@ -1,4 +1,5 @@
-"""Problem families: `earth_mars` (seed 000), `solar_sail` (seed 003), `attitude` (seed 002) and small problems with analytic answers."""
+"""Problem families: `earth_mars` (seed 000), `solar_sail` (seed 003), `attitude` (seed 002),
+small problems with analytic answers (`analytic`) and the classic-problem gallery (`classic`)."""
 
 from . import (
     analytic as analytic,
