@@ -289,7 +289,8 @@ def solve_ipopt(
     fn = _casadi_function(ev, n, m + p)
     x = ca.MX.sym("a", n)
     values = fn(x)
-    nlp = {"x": x, "f": values[0], "g": ca.vertcat(values[1:], ca.mtimes(ca.DM(D), x) + ca.DM(c))}
+    rows = ([values[1:]] if m + p else []) + ([ca.mtimes(ca.DM(D), x) + ca.DM(c)] if D.shape[0] else [])
+    nlp = {"x": x, "f": values[0], "g": ca.vertcat(*rows) if rows else ca.MX(0, 1)}
     options = {
         "ipopt.hessian_approximation": "limited-memory",
         "ipopt.tol": tol,

@@ -9,7 +9,7 @@ import scipy.integrate
 import scipy.optimize
 
 import jaxtraj as jt
-from jaxtraj.baselines import solve_slsqp
+from jaxtraj.baselines import solve_ipopt, solve_slsqp
 
 CLASSIC = jt.problems.classic
 SIM = jt.RK4(40)
@@ -88,3 +88,12 @@ def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     assert jt.status_name(sol.status) == "SUCCESS"
     gap = float(sol.objective) - entry.reference
     assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
+
+
+@pytest.mark.parametrize("name", ["lq", "capped-terminal"])
+def test_ipopt_runs_problems_without_terminal_equality_constraints(name):
+    entry = CLASSIC.get(name)
+    assert entry.problem.num_constraints == 0
+    res = solve_ipopt(entry.problem, entry.control, entry.start, simulator=SIM)
+    assert res.success
+    assert -1e-6 * (1.0 + abs(entry.reference)) <= res.objective - entry.reference <= entry.gap
