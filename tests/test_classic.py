@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
+from helpers import perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
@@ -83,11 +84,17 @@ def test_slsqp_reaches_each_reference_within_its_gap(name):
 
 @pytest.mark.parametrize("name", ["brachistochrone", "moon-lander", "singular-arc", "max-range", "hypersensitive"])
 def test_default_solver_reaches_the_reference_from_the_naive_start(name):
+    """From the naive start and from round-off-sized perturbations of it (absolute, so the
+    zero entries move too): SUCCESS at the reference every time, one optimum."""
     entry = CLASSIC.get(name)
-    sol = jt.solve(entry.problem, entry.control, entry.start, simulator=SIM)
-    assert jt.status_name(sol.status) == "SUCCESS"
-    gap = float(sol.objective) - entry.reference
-    assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
+    objectives = []
+    for start in perturbed_starts(entry.start, absolute=True):  # eps = 0 is the start itself
+        sol = jt.solve(entry.problem, entry.control, start, simulator=SIM)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        gap = float(sol.objective) - entry.reference
+        assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
+        objectives.append(float(sol.objective))
+    assert max(objectives) - min(objectives) <= 1e-7 * (1.0 + abs(entry.reference))
 
 
 @pytest.mark.parametrize("name", ["lq", "capped-terminal"])
