@@ -84,7 +84,10 @@ def convexify(hessian, H, min_curvature):
     c = jnp.linalg.norm(hessian) / jnp.maximum(jnp.linalg.norm(HtH), 1e-300)
     w, V = jnp.linalg.eigh(hessian + c * HtH)
     w = jnp.abs(w)
-    w = jnp.maximum(w, min_curvature * jnp.maximum(jnp.max(w), 1e-300))
+    # No curvature at all (a linear objective with zero multipliers, e.g. minimum time at a
+    # start where the constraints are indifferent to the times): the identity, not 1e-300 I
+    # (whose inverse overflows); the line search's radius bounds the step.
+    w = jnp.where(jnp.max(w) > 0.0, jnp.maximum(w, min_curvature * jnp.max(w)), 1.0)
     return (V * w[None, :]) @ V.T
 
 

@@ -82,7 +82,10 @@ def test_slsqp_reaches_each_reference_within_its_gap(name):
     assert float(jnp.max(jnp.abs(E), initial=0.0)) < 1e-6
 
 
-@pytest.mark.parametrize("name", ["brachistochrone", "moon-lander", "singular-arc", "max-range", "hypersensitive"])
+@pytest.mark.parametrize(
+    "name",
+    ["min-time-double-integrator", "brachistochrone", "moon-lander", "singular-arc", "max-range", "hypersensitive"],
+)
 def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     """From the naive start and from round-off-sized perturbations of it (absolute, so the
     zero entries move too): SUCCESS at the reference every time, one optimum."""

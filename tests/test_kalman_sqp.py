@@ -123,6 +123,15 @@ def test_convexify_keeps_the_qp_solution_and_is_positive_definite():
             np.testing.assert_allclose(_kkt(B, H, G_a, E)[0], _kkt(W, H, G_a, E)[0], rtol=1e-9, atol=1e-9)
 
 
+def test_convexify_of_no_curvature_is_the_identity():
+    """A zero Lagrangian Hessian (minimum time, zero multipliers) has no curvature to
+    floor: the identity, whose inverse is finite (a floor relative to 0 overflowed to NaN
+    steps: the gallery's minimum-time double integrator from rest was STALLED at step 0)."""
+    H = np.array([[0.375, 0.0, 0.125, 0.0], [0.5, 0.0, 0.5, 0.0]])
+    B = np.asarray(convexify(jnp.zeros((4, 4)), jnp.asarray(H), 1e-8))
+    np.testing.assert_allclose(B, np.eye(4), atol=1e-14)
+
+
 def test_merit_slope_matches_finite_differences_and_is_a_descent():
     """phi(a + t d, lambda + t dlam): the slope used by the Armijo rule against central
     differences of real evaluations (Earth-Mars case 4 at the published start), and it is
