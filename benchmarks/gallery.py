@@ -3,10 +3,10 @@ with every solver, against the problem's independent reference optimum.
 
 Per problem and solver: status, objective, gap to the reference (objective - reference; the
 continuous optimum, so a restricted control may sit above it by up to the problem's `gap`),
-whether the run is "at the reference" (SUCCESS and |gap| <= gap), iterations, first call
-(compile + solve) and warm time (best of 2). A SUCCESS more than `gap` above the reference,
-or below it by more than the tolerance, is flagged `FALSE-SUCCESS?`: a SUCCESS must be a
-local optimum of the restricted problem, so it should be checked against the others.
+whether the run is "at the reference" (SUCCESS and -tol <= gap <= the problem's `gap` + tol,
+tol = 1e-6 (1 + |reference|)), iterations, first call (compile + solve) and warm time (best of
+2). A SUCCESS outside that band is flagged `FALSE-SUCCESS?`: a SUCCESS must be a local
+optimum of the restricted problem, so it should be checked against the others.
 
 Solvers: KalmanSQP (default), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and, when CasADi
 is installed, IPOPT (both on the same compiled evaluation). A solver that cannot honor a
@@ -75,7 +75,8 @@ def measure(entry, run):
         run(entry)
         warm = min(warm, time.perf_counter() - t0)
     gap = J - entry.reference
-    at = status == "SUCCESS" and -1e-6 * (1 + abs(entry.reference)) <= gap <= entry.gap
+    tol = 1e-6 * (1 + abs(entry.reference))  # the solvers' own accuracy (KalmanSearch's is looser)
+    at = status == "SUCCESS" and -tol <= gap <= entry.gap + tol
     if status == "SUCCESS" and not at:
         status = "FALSE-SUCCESS?"
     return {"status": status, "J": J, "gap": gap, "at": at, "its": its, "first": first, "warm": warm}

@@ -15,6 +15,16 @@ from jaxtraj.baselines import solve_slsqp
 SIM = jt.RK4(40)
 
 
+def _run(solver, prob, ctrl, a0):
+    """`(ok, J, params)` of a jaxtraj solver (None: the default; "al": AugmentedLagrangian)
+    or of SciPy SLSQP ("slsqp")."""
+    if solver == "slsqp":
+        res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
+        return res.success, res.objective, res.params
+    sol = jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
+    return jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
+
+
 def _fixed_time(T):
     """Terminal constraint tf - T = 0 (a fixed final time on a free-tf family)."""
     return lambda tf, xf, args: jnp.array([tf - T])
@@ -400,14 +410,8 @@ def test_fixed_final_time_reaches_the_riccati_optimum_without_tf_in_the_vector(s
     ctrl = prob.parametrize(jt.controls.PiecewiseLinear(20))
     a0 = ctrl.initial_guess(1.0, 0.0, 0.0)  # 21 node values, no tf
     want = 0.5 * np.tanh(1.0)
-    if solver == "slsqp":
-        res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
-        ok, J, params = res.success, res.objective, res.params
-    else:
-        sol = jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
-        ok, J, params = jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
-        assert float(sol.tf) == 1.0
-    assert ok and abs(J - want) < 1e-6
+    ok, J, params = _run(solver, prob, ctrl, a0)
+    assert ok and abs(J - want) < 1e-6 and float(ctrl.tf(params)) == 1.0
     assert np.shape(params) == (21,)  # the 21 node values; no tf entry
     t = np.linspace(0.0, 1.0, 21)
     np.testing.assert_allclose(np.asarray(ctrl(params, t))[:, 0], -np.sinh(1.0 - t) / np.cosh(1.0), atol=1e-3)
@@ -514,12 +518,7 @@ def test_free_initial_state_reaches_the_analytic_optimum(solver, x_lo):
     else:
         B = (1.0 - x_lo * np.cosh(1.0)) / np.sinh(1.0)
         x_start, want = x_lo, 0.5 * (x_lo * np.sinh(1.0) + B * np.cosh(1.0) - x_lo * B)
-    if solver == "slsqp":
-        res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
-        ok, J, params = res.success, res.objective, res.params
-    else:
-        sol = jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian() if solver == "al" else solver, simulator=SIM)
-        ok, J, params = jt.status_name(sol.status) == "SUCCESS", float(sol.objective), sol.params
+    ok, J, params = _run(solver, prob, ctrl, a0)
     assert ok
     # KalmanSearch stops on its own (looser) stationarity test
     assert abs(J - want) < (1e-4 if isinstance(solver, jt.KalmanSearch) else 1e-6)

@@ -9,14 +9,43 @@ import numpy as np
 from ._base import AbstractControl
 
 
-class FixedFinalTime(AbstractControl):
+class _Adapted(AbstractControl):
+    """A family adapted to a problem: the segments, channels, limits and the control on a
+    segment are the family's; subclasses change the parameter vector."""
+
+    control: eqx.AbstractVar[AbstractControl]
+
+    @property
+    def num_segments(self):
+        return self.control.num_segments
+
+    @property
+    def num_controls(self):
+        return self.control.num_controls
+
+    @property
+    def limits(self):
+        return self.control.limits
+
+    @property
+    def value_bounds_exact(self):
+        return self.control.value_bounds_exact
+
+    @property
+    def affine(self):
+        return self.control.affine
+
+    def local_control(self, row, h, tau):
+        return self.control.local_control(row, h, tau)
+
+
+class FixedFinalTime(_Adapted):
     """`control` on [0, T] with the final time T fixed: its parameter vector without the tf
     entry, so that tf is no decision parameter at all.
 
     `problem.parametrize(family)` builds it for a problem with `final_time=T`; use it for
     every entry point and to evaluate u(a, t) (`sol.params` has no tf entry). From a family
-    with equally spaced knots
-    (`time_layout` `"final_time"`) it drops tf (layout `"fixed"`: no time entries); from
+    with equally spaced knots (`time_layout` `"final_time"`) it drops tf (layout `"fixed"`: no time entries); from
     free knot times (`"knots"`) it drops the last knot t_K = T (layout `"interior_knots"`).
     Families whose durations are the times (`SaturatedSpline(free_durations=True)`) are
     refused: tf = sum h_k is no single entry (use `free_durations=False`).
@@ -62,14 +91,6 @@ class FixedFinalTime(AbstractControl):
         return self.control.num_params - 1
 
     @property
-    def num_segments(self):
-        return self.control.num_segments
-
-    @property
-    def num_controls(self):
-        return self.control.num_controls
-
-    @property
     def time_indices(self):
         return self._shift(self.control.time_indices)
 
@@ -82,26 +103,11 @@ class FixedFinalTime(AbstractControl):
         idx, channel = self.control.value_indices
         return self._shift(idx), tuple(channel)
 
-    @property
-    def limits(self):
-        return self.control.limits
-
-    @property
-    def value_bounds_exact(self):
-        return self.control.value_bounds_exact
-
-    @property
-    def affine(self):
-        return self.control.affine
-
     def knots(self, a):
         return self.control.knots(self.expand(a))
 
     def segment_table(self, a):
         return self.control.segment_table(self.expand(a))
-
-    def local_control(self, row, h, tau):
-        return self.control.local_control(row, h, tau)
 
     def initial_guess(self, tf, u_start, u_end):
         """The family's straight-line guess on [0, T] without tf; `tf` must be T."""
@@ -114,7 +120,7 @@ class FixedFinalTime(AbstractControl):
         self.control._check_values(np.asarray(self.expand(jnp.asarray(a))))
 
 
-class FreeInitialState(AbstractControl):
+class FreeInitialState(_Adapted):
     """`control` with free initial-state components appended to its parameter vector:
     `a = [control's parameters, x0[indices]]`.
 
@@ -150,14 +156,6 @@ class FreeInitialState(AbstractControl):
         return self.control.num_params + len(self.indices)
 
     @property
-    def num_segments(self):
-        return self.control.num_segments
-
-    @property
-    def num_controls(self):
-        return self.control.num_controls
-
-    @property
     def time_indices(self):
         return self.control.time_indices
 
@@ -170,18 +168,6 @@ class FreeInitialState(AbstractControl):
         return self.control.value_indices
 
     @property
-    def limits(self):
-        return self.control.limits
-
-    @property
-    def value_bounds_exact(self):
-        return self.control.value_bounds_exact
-
-    @property
-    def affine(self):
-        return self.control.affine
-
-    @property
     def final_time(self):
         return getattr(self.control, "final_time", None)
 
@@ -190,9 +176,6 @@ class FreeInitialState(AbstractControl):
 
     def segment_table(self, a):
         return self.control.segment_table(a[: self.control.num_params])
-
-    def local_control(self, row, h, tau):
-        return self.control.local_control(row, h, tau)
 
     def initial_guess(self, tf, u_start, u_end):
         """The wrapped control's guess, then the start values of the free components."""
