@@ -163,7 +163,7 @@ def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
     if control.time_layout == "fixed":  # no time parameter
         return ParameterBox(lower, upper)
     if control.time_layout == "interior_knots":  # t_1 < ... < t_(K-1) < T fixed
-        upper = upper.at[times[-1]].set(control.final_time - min_duration) if times.size else upper
+        upper = upper.at[times[-1]].set(problem.final_time - min_duration) if times.size else upper
     return ParameterBox(lower, upper, tuple(int(t) for t in times), float(min_duration))
 
 

@@ -572,3 +572,17 @@ def test_free_initial_state_errors_name_the_argument():
     family = jt.controls.PiecewiseLinear(2)
     with pytest.raises(ValueError, match=r"free initial states \['x1'\]"):
         jt.simulate(prob, family, family.initial_guess(1.0, 0.0, 0.0))
+
+
+def test_augmented_lagrangian_keeps_interior_knots_below_a_fixed_final_time():
+    """Free node times with a fixed tf (layout "interior_knots"): AL's parameter box keeps the
+    last free knot below T (the box takes T from the problem), at the free-start optimum
+    tanh(1) / 2 (six free-time pieces are within 1e-6 of it)."""
+    prob = free_start_problem((0.0, 2.0))
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(6, free_times=True))
+    assert ctrl.time_layout == "interior_knots"
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), jt.AugmentedLagrangian(), simulator=SIM)
+    assert jt.status_name(sol.status) == "SUCCESS"
+    assert abs(float(sol.objective) - 0.5 * np.tanh(1.0)) < 1e-6
+    knots = np.asarray(ctrl.knots(sol.params))
+    assert knots[-1] == 1.0 and np.all(np.diff(knots) > 0)

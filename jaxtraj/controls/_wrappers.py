@@ -167,10 +167,6 @@ class FreeInitialState(_Adapted):
     def value_indices(self):
         return self.control.value_indices
 
-    @property
-    def final_time(self):
-        return getattr(self.control, "final_time", None)
-
     def knots(self, a):
         return self.control.knots(a[: self.control.num_params])
 
