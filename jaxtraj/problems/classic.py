@@ -5,15 +5,17 @@ reference optimum and where it comes from.
 (`Problem.parametrize`), a naive start (a zero or constant control, what a new user would
 try), and the reference objective of the *continuous* problem with its source. References
 are independent of jaxtraj's code: closed-form solutions, or a second method (the cycloid of
-the brachistochrone by root finding; the hypersensitive problem's optimality conditions by
-`scipy.integrate.solve_bvp`), recomputed in `tests/test_classic.py`. A restricted control
+the brachistochrone and Zermelo's steering law by root finding; the optimality conditions of
+the hypersensitive and orbit-raising problems by `scipy.integrate.solve_bvp`; CasADi
+collocation in `benchmarks/collocation.py`), recomputed in `tests/test_classic.py`. A restricted control
 (K pieces) may stay above the continuous optimum by its restriction gap (`gap`, the room a
 solver's objective is given above the reference).
 
 Together they cover: free-tf minimum time, a fixed-tf Mayer objective, running costs,
-bang-bang controls under control bounds, a state path constraint, a singular arc, a terminal
-inequality, several controls, a design parameter, a free initial state and a sensitive
-(hypersensitive) problem. `benchmarks/gallery.py` solves them all with every solver.
+bang-bang controls under control bounds, a state path constraint, singular arcs (Goddard's
+rocket), a terminal inequality, several controls, a design parameter, a free initial state, a
+sensitive (hypersensitive) problem, time-varying dynamics (orbit raising) and a
+state-dependent field (Zermelo). `benchmarks/gallery.py` solves them all with every solver.
 """
 
 import dataclasses
@@ -332,6 +334,170 @@ def capped_terminal() -> ClassicProblem:
     )  # fmt: skip
 
 
+def _zermelo(t, x, u, args):
+    del t, args
+    return jnp.stack([jnp.cos(u[0]) - x[1], jnp.sin(u[0])])
+
+
+def _at_origin(tf, xf, args):
+    del tf, args
+    return xf
+
+
+#: `zermelo_time()`, recomputed in tests/test_classic.py
+ZERMELO_TIME = 5.45786526
+
+
+def zermelo_time(start=(3.66, -1.86)) -> float:
+    """The closed-form steering law, by root finding: with the current -y along x the costate
+    gives tan(theta) = c + t, theta = pi + atan(c + t) (the branch heading against the
+    current); c and tf are found so that the ship reaches the origin, its path integrated by
+    `scipy.integrate.solve_ivp`."""
+    import scipy.integrate
+    import scipy.optimize
+
+    def miss(p):
+        c, tf = p
+
+        def rhs(t, s):
+            theta = np.pi + np.arctan(c + t)
+            return [np.cos(theta) - s[1], np.sin(theta)]
+
+        return scipy.integrate.solve_ivp(rhs, (0.0, tf), list(start), rtol=1e-12, atol=1e-12).y[:, -1]
+
+    (_, tf), _, ok, msg = scipy.optimize.fsolve(miss, [-2.0, 4.0], xtol=1e-13, full_output=True)
+    if ok != 1:  # pragma: no cover - a reference that cannot be computed is an error
+        raise RuntimeError(f"zermelo reference: {msg}")
+    return float(tf)
+
+
+def zermelo() -> ClassicProblem:
+    """Bryson & Ho's Zermelo problem with a linear current: x' = cos(theta) - y, y' =
+    sin(theta) (ship speed 1, current -y along x), from (3.66, -1.86) to the origin in least
+    time; the heading turns from 105 to 240 degrees, tf* = 5.4579."""
+    problem = Problem(
+        _zermelo, [3.66, -1.86], _at_origin, ("x", "y"), state_names=("x", "y"), control_names=("theta",),
+        name="zermelo",
+    )  # fmt: skip
+    control, start = _zero_start(problem, PiecewiseLinear(8), tf=5.0, u=np.pi)
+    return ClassicProblem(
+        "zermelo", problem, control, start, ZERMELO_TIME, "closed-form steering law, by root finding (`zermelo_time`)",
+        "Bryson & Ho (1975), sec. 2.7 (tf = 5.46 h/V)", 2e-4, ("free tf, minimum time", "state-dependent field"),
+    )  # fmt: skip
+
+
+def _goddard(t, x, u, args):
+    del t
+    h, v, m = x[0], x[1], x[2]
+    drag = args["drag"] * v**2 * jnp.exp(-args["h_c"] * (h - 1.0))
+    return jnp.stack([v, (u[0] - drag) / m - 1.0 / h**2, -u[0] / args["c"]])
+
+
+def _goddard_mass(tf, xf, args):
+    del tf
+    return xf[2:3] - args["final_mass"]
+
+
+def _minus_h(tf, xf, args):
+    del tf, args
+    return -xf[0]
+
+
+#: `orbit_raising_radius()`, recomputed in tests/test_classic.py
+ORBIT_RAISING_RADIUS = 1.5252777
+
+
+def orbit_raising_radius(tf=3.32, thrust=0.1405, mass_flow=0.0749) -> float:
+    """r(tf) by the indirect method, an independent second method: states (r, vr, vt),
+    costates (lr, lu, lv), the thrust direction minimizes the Hamiltonian, (sin phi, cos phi)
+    = -(lu, lv) / |(lu, lv)|; transversality of -r(tf) + nu (vt - r^-1/2): lr(tf) = -1 +
+    lv(tf) / (2 r(tf)^3/2). Solved by `scipy.integrate.solve_bvp` (tolerance 1e-10)."""
+    import scipy.integrate
+
+    def rhs(t, y):
+        r, vr, vt, lr, lu, lv = y
+        a = thrust / (1.0 - mass_flow * t)
+        norm = np.hypot(lu, lv)
+        return np.vstack([
+            vr, vt**2 / r - 1.0 / r**2 - a * lu / norm, -vr * vt / r - a * lv / norm,
+            -(lu * (2.0 / r**3 - vt**2 / r**2) + lv * vr * vt / r**2), lv * vt / r - lr, (lv * vr - 2.0 * lu * vt) / r,
+        ])  # fmt: skip
+
+    def bc(ya, yb):
+        r, vr, vt, lr, _, lv = yb
+        return np.array([ya[0] - 1.0, ya[1], ya[2] - 1.0, vr, vt - r**-0.5, lr + 1.0 - lv / (2.0 * r**1.5)])
+
+    tau = np.linspace(0.0, 1.0, 201)
+    phi = 0.5 + 2.5 * tau  # outward-forward, turning to outward-backward
+    r = 1.0 + 0.5 * tau**2 * (3.0 - 2.0 * tau)
+    guess = np.vstack([r, 3.0 * tau * (1.0 - tau) / tf, r**-0.5, -np.ones_like(tau), -np.sin(phi), -np.cos(phi)])
+    with np.errstate(divide="ignore", invalid="ignore"):  # trial Newton iterates may reach r = 0
+        sol = scipy.integrate.solve_bvp(rhs, bc, tf * tau, guess, tol=1e-6, max_nodes=100000)
+        sol = scipy.integrate.solve_bvp(rhs, bc, sol.x, sol.y, tol=1e-10, max_nodes=200000)
+    if sol.status != 0:  # pragma: no cover - a reference that cannot be computed is an error
+        raise RuntimeError(f"orbit-raising reference: solve_bvp failed ({sol.message})")
+    return float(sol.sol(tf)[0])
+
+
+#: the final height by CasADi Hermite-Simpson collocation (`benchmarks/collocation.py`, 1600
+#: intervals, converging from above); COPS 3.0 (Dolan, More & Munson 2004) gives 1.01283
+GODDARD_HEIGHT = 1.012837
+
+
+def goddard() -> ClassicProblem:
+    """COPS' Goddard rocket: the greatest height of a rocket under height-dependent drag and
+    inverse-square gravity. (h, v, m) = (1, 0, 1), thrust 0 <= T <= 3.5, h' = v, v' = (T -
+    D) / m - 1 / h^2, m' = -T / c, D = 310 v^2 exp(-500 (h - 1)), c = 1/2, final mass 0.6, tf
+    free, min -h(tf). The optimum is bang (full thrust), a singular arc, then a coast."""
+    problem = Problem(
+        _goddard, [1.0, 0.0, 1.0], _goddard_mass, ("m(tf) = 0.6",), objective=_minus_h,
+        args={"drag": jnp.asarray(310.0), "h_c": jnp.asarray(500.0), "c": jnp.asarray(0.5),
+              "final_mass": jnp.asarray(0.6)},
+        control_lower=0.0, control_upper=3.5, state_names=("h", "v", "m"), control_names=("T",), name="goddard",
+    )  # fmt: skip
+    control, start = _zero_start(problem, PiecewiseLinear(10), tf=0.2, u=1.0)
+    return ClassicProblem(
+        "goddard", problem, control, start, -GODDARD_HEIGHT, "CasADi collocation (benchmarks/collocation.py); COPS 3.0 publishes 1.01283",
+        "Dolan, More & Munson (2004), COPS 3.0, ANL/MCS-TM-246, Goddard rocket", 1e-4,
+        ("singular arc", "control bounds", "free tf, Mayer objective"),
+    )  # fmt: skip
+
+
+def _orbit_raising(t, x, u, args):
+    r, vr, vt = x[0], x[1], x[2]
+    accel = args["thrust"] / (1.0 - args["mass_flow"] * t) * u / jnp.sqrt(jnp.sum(u**2))
+    return jnp.stack([vr, vt**2 / r - 1.0 / r**2 + accel[0], -vr * vt / r + accel[1]])
+
+
+def _circular(tf, xf, args):
+    del tf, args
+    return jnp.stack([xf[1], xf[2] - 1.0 / jnp.sqrt(xf[0])])
+
+
+def _minus_r(tf, xf, args):
+    del tf, args
+    return -xf[0]
+
+
+def orbit_raising() -> ClassicProblem:
+    """Bryson & Ho's orbit raising: the largest circular orbit reached in time 3.32 (mu = 1)
+    from the unit circular orbit with constant thrust 0.1405 and mass 1 - 0.0749 t; the
+    control is the thrust angle from the local horizontal. States (r, vr, vt); the terminal
+    orbit is circular (vr = 0, vt = r^-1/2); min -r(tf)."""
+    problem = Problem(
+        _orbit_raising, [1.0, 0.0, 1.0], _circular, ("vr", "vt - r^-1/2"), objective=_minus_r,
+        args={"thrust": jnp.asarray(0.1405), "mass_flow": jnp.asarray(0.0749)}, final_time=3.32,
+        num_controls=2, state_names=("r", "vr", "vt"), control_names=("radial", "tangential"), name="orbit-raising",
+    )  # fmt: skip
+    control = problem.parametrize(PiecewiseLinear(10, channels=2))
+    start = control.initial_guess(3.32, [0.0, 1.0], [0.0, 1.0])  # tangential thrust
+    return ClassicProblem(
+        "orbit-raising", problem, control, start, -ORBIT_RAISING_RADIUS,
+        "indirect method by scipy.integrate.solve_bvp (`orbit_raising_radius`); CasADi collocation",
+        "Bryson & Ho (1975), sec. 2.5 (r(tf) = 1.525)", 2e-5, ("fixed tf, Mayer objective", "time-varying dynamics"),
+    )  # fmt: skip
+
+
 def _hyper(t, x, u, args):
     del t, args
     return -(x[:1] ** 3) + u
@@ -394,6 +560,9 @@ _BUILDERS = {
     "free-initial-state": free_initial_state,
     "capped-terminal": capped_terminal,
     "hypersensitive": hypersensitive,
+    "zermelo": zermelo,
+    "goddard": goddard,
+    "orbit-raising": orbit_raising,
 }
 
 
