@@ -481,9 +481,12 @@ def _minus_r(tf, xf, args):
 
 def orbit_raising() -> ClassicProblem:
     """Bryson & Ho's orbit raising: the largest circular orbit reached in time 3.32 (mu = 1)
-    from the unit circular orbit with constant thrust 0.1405 and mass 1 - 0.0749 t; the
-    control is the thrust angle from the local horizontal. States (r, vr, vt); the terminal
-    orbit is circular (vr = 0, vt = r^-1/2); min -r(tf)."""
+    from the unit circular orbit with constant thrust 0.1405 and mass 1 - 0.0749 t. The
+    control is the thrust direction as a vector (radial, tangential), normalized in the
+    dynamics: an angle would need the right turn (about 5 rad through the retrograde
+    direction) from the start, and from a constant start ends at a local optimum with one
+    segment turning the wrong way. States (r, vr, vt); the terminal orbit is circular (vr =
+    0, vt = r^-1/2); min -r(tf)."""
     problem = Problem(
         _orbit_raising, [1.0, 0.0, 1.0], _circular, ("vr", "vt - r^-1/2"), objective=_minus_r,
         args={"thrust": jnp.asarray(0.1405), "mass_flow": jnp.asarray(0.0749)}, final_time=3.32,
