@@ -5,11 +5,19 @@ import jax
 import numpy as np
 
 
-class Status(eqx.Enumeration):
+class _Iterable(type(eqx.Enumeration)):
+    """Equinox's enumeration metaclass, plus iteration over the items in declaration order."""
+
+    def __iter__(cls):
+        return (getattr(cls, name) for name in STATUS_NAMES)
+
+
+class Status(eqx.Enumeration, metaclass=_Iterable):
     """Outcome of a simulation or a solve. Each item's value is the message a user reads.
 
     Compare with `==` (`sol.status == jt.Status.SUCCESS`); under `vmap` the comparison is
-    element-wise. Combine with `Status.where(pred, a, b)`.
+    element-wise. Combine with `Status.where(pred, a, b)`. `list(jt.Status)` gives the items,
+    `len(jt.Status)` their number.
     """
 
     SUCCESS = ""

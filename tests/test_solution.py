@@ -55,8 +55,12 @@ def test_status_name_of_batched_and_single_statuses(batch):
     assert names.tolist() == ["SUCCESS", "SUCCESS", "NONFINITE"]
     np.testing.assert_array_equal(names == "SUCCESS", np.asarray(sols.status == jt.Status.SUCCESS))
     assert jt.status_name(singles[0].status) == "SUCCESS" and isinstance(jt.status_name(singles[0].status), str)
-    for name in ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY"):
+    every = ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY")
+    for name in every:
         assert jt.status_name(getattr(jt.Status, name)) == name
+    # iterating the enumeration gives every item once, in declaration order
+    assert [jt.status_name(s) for s in jt.Status] == list(every) and len(list(jt.Status)) == len(jt.Status)
+    assert jt.Status[list(jt.Status)[2]] == "The search could not make progress (repeated rejected steps)."
     with pytest.raises(ValueError, match="Status"):
         jt.status_name(0)
     with pytest.raises(ValueError, match="concrete"):
