@@ -7,9 +7,9 @@ try), and the reference objective of the *continuous* problem with its source. R
 are independent of jaxtraj's code: closed-form solutions, or a second method (the cycloid of
 the brachistochrone and Zermelo's steering law by root finding; the optimality conditions of
 the hypersensitive and orbit-raising problems by `scipy.integrate.solve_bvp`; CasADi
-collocation in `benchmarks/collocation.py`), recomputed in `tests/test_classic.py`. A restricted control
-(K pieces) may stay above the continuous optimum by its restriction gap (`gap`, the room a
-solver's objective is given above the reference).
+collocation in `benchmarks/collocation.py`), recomputed in `tests/test_classic.py`. A
+restricted control (K pieces) may stay above the continuous optimum by its restriction gap
+(`gap`, the room a solver's objective is given above the reference).
 
 Together they cover: free-tf minimum time, a fixed-tf Mayer objective, running costs,
 bang-bang controls under control bounds, a state path constraint, singular arcs (Goddard's
@@ -222,7 +222,7 @@ def singular_arc() -> ClassicProblem:
     )  # fmt: skip
 
 
-def _minus_x(tf, xf, args):
+def _maximize_first_state(tf, xf, args):
     del tf, args
     return -xf[0]
 
@@ -235,7 +235,7 @@ def _at_rest(tf, xf, args):
 def max_range() -> ClassicProblem:
     """x'' = u, |u| <= 1, from rest, v(1) = 0, max x(1) (min -x(1)): u = +1 then -1, x(1) = 1/4."""
     problem = Problem(
-        _double_integrator, [0.0, 0.0], _at_rest, ("v",), objective=_minus_x, final_time=1.0,
+        _double_integrator, [0.0, 0.0], _at_rest, ("v",), objective=_maximize_first_state, final_time=1.0,
         control_lower=-1.0, control_upper=1.0, name="max-range",
     )  # fmt: skip
     control, start = _zero_start(problem, PiecewiseConstant(2))
@@ -339,11 +339,6 @@ def _zermelo(t, x, u, args):
     return jnp.stack([jnp.cos(u[0]) - x[1], jnp.sin(u[0])])
 
 
-def _at_origin(tf, xf, args):
-    del tf, args
-    return xf
-
-
 #: `zermelo_time()`, recomputed in tests/test_classic.py
 ZERMELO_TIME = 5.45786526
 
@@ -376,8 +371,8 @@ def zermelo() -> ClassicProblem:
     sin(theta) (ship speed 1, current -y along x), from (3.66, -1.86) to the origin in least
     time; the heading turns from 105 to 240 degrees, tf* = 5.4579."""
     problem = Problem(
-        _zermelo, [3.66, -1.86], _at_origin, ("x", "y"), state_names=("x", "y"), control_names=("theta",),
-        name="zermelo",
+        _zermelo, [3.66, -1.86], _to_target, ("x", "y"), args={"target": jnp.zeros(2)}, state_names=("x", "y"),
+        control_names=("theta",), name="zermelo",
     )  # fmt: skip
     control, start = _zero_start(problem, PiecewiseLinear(8), tf=5.0, u=np.pi)
     return ClassicProblem(
@@ -396,11 +391,6 @@ def _goddard(t, x, u, args):
 def _goddard_mass(tf, xf, args):
     del tf
     return xf[2:3] - args["final_mass"]
-
-
-def _minus_h(tf, xf, args):
-    del tf, args
-    return -xf[0]
 
 
 #: `orbit_raising_radius()`, recomputed in tests/test_classic.py
@@ -450,7 +440,7 @@ def goddard() -> ClassicProblem:
     D) / m - 1 / h^2, m' = -T / c, D = 310 v^2 exp(-500 (h - 1)), c = 1/2, final mass 0.6, tf
     free, min -h(tf). The optimum is bang (full thrust), a singular arc, then a coast."""
     problem = Problem(
-        _goddard, [1.0, 0.0, 1.0], _goddard_mass, ("m(tf) = 0.6",), objective=_minus_h,
+        _goddard, [1.0, 0.0, 1.0], _goddard_mass, ("m(tf) = 0.6",), objective=_maximize_first_state,
         args={"drag": jnp.asarray(310.0), "h_c": jnp.asarray(500.0), "c": jnp.asarray(0.5),
               "final_mass": jnp.asarray(0.6)},
         control_lower=0.0, control_upper=3.5, state_names=("h", "v", "m"), control_names=("T",), name="goddard",
@@ -474,11 +464,6 @@ def _circular(tf, xf, args):
     return jnp.stack([xf[1], xf[2] - 1.0 / jnp.sqrt(xf[0])])
 
 
-def _minus_r(tf, xf, args):
-    del tf, args
-    return -xf[0]
-
-
 def orbit_raising() -> ClassicProblem:
     """Bryson & Ho's orbit raising: the largest circular orbit reached in time 3.32 (mu = 1)
     from the unit circular orbit with constant thrust 0.1405 and mass 1 - 0.0749 t. The
@@ -488,7 +473,7 @@ def orbit_raising() -> ClassicProblem:
     segment turning the wrong way. States (r, vr, vt); the terminal orbit is circular (vr =
     0, vt = r^-1/2); min -r(tf)."""
     problem = Problem(
-        _orbit_raising, [1.0, 0.0, 1.0], _circular, ("vr", "vt - r^-1/2"), objective=_minus_r,
+        _orbit_raising, [1.0, 0.0, 1.0], _circular, ("vr", "vt - r^-1/2"), objective=_maximize_first_state,
         args={"thrust": jnp.asarray(0.1405), "mass_flow": jnp.asarray(0.0749)}, final_time=3.32,
         num_controls=2, state_names=("r", "vr", "vt"), control_names=("radial", "tangential"), name="orbit-raising",
     )  # fmt: skip
