@@ -86,9 +86,8 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     return da * jnp.min(limit, initial=1.0), P
 
 
-#: Default `dependence` of `observe_worst`: a path row whose variance left by the rows already
-#: observed is below this fraction of its prior variance is skipped (KalmanSQP's
-#: `path_dependence`, KalmanSearch's fixed value).
+#: KalmanSearch's `dependence` in `observe_worst`: a path row whose variance left by the rows
+#: already observed is below this fraction of its prior variance is skipped.
 PATH_DEPENDENCE = 1e-4
 
 
@@ -114,6 +113,97 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
     return d, P, active
 
 
+def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter):
+    """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
+    Programming 27, 1983) in filter form.
+
+    Starting point: `d` and `P`, the minimum of the quadratic model (Hessian `B`) on the
+    equality rows `H` and the covariance left by filtering them. Sought: the minimum with
+    C + C_a d <= 0 too. The working set W starts empty (dual feasible: all multipliers 0);
+    each round takes the row p that d violates most (above `threshold`) and moves along
+    z = P_W c_p, P_W the covariance after filtering W's rows (noise `r`): the step that
+    lowers row p's value while keeping E's and W's, optimal in the metric of B. The
+    multipliers u of W change by t rho, rho the least-squares solution of [H; C_W]^T rho =
+    B z - c_p (stationarity along the step). The step length t is the smaller of the full
+    step s_p / (c_p^T z), which adds p to W, and the partial step at which a multiplier of W
+    reaches 0, which drops that row and retries p. A row (nearly) dependent on W (c_p^T z
+    below `dependence` x its prior variance `prior_var`: neighbouring grid points) takes the
+    partial step only: it replaces a working row instead of being skipped, so the active set
+    cannot cycle between grid neighbours. Every round either adds a row or strictly raises
+    the dual objective (the method's finite convergence); `max_iter` bounds the rounds.
+
+    A violated row that no step can meet (dependent on W, and no multiplier of W blocks:
+    the linearized constraints are inconsistent, or, at a vertex, the row is violated by
+    the filter's round-off only) is skipped. Returns `(W, u, excess)`: the working set
+    (boolean, per row), its multipliers, and per row the violation left on a skipped row
+    (-inf on the others): round-off, or the inconsistency. The caller filters W's rows to
+    get the step itself.
+    """
+    m, n = H.shape[0], d.shape[0]
+
+    def working_rows(W):
+        # W's rows gathered (in order) into n slots: rows independent of E's and of each
+        # other are at most n, so the covariance and the multipliers cost O(n) rows per
+        # round instead of one per grid point
+        idx = jnp.nonzero(W, size=n, fill_value=0)[0]
+        return idx, jnp.arange(n) < jnp.sum(W)
+
+    def covariance(idx, valid):
+        return sequential_update(jnp.zeros_like(d), P, C_a[idx], jnp.zeros(n, d.dtype), r[idx], active=valid)[1]
+
+    def body(state):
+        d, W, u, p, it, _, skipped = state
+        s = C + C_a @ d
+        v = jnp.where(W | skipped, -jnp.inf, s)
+        worst = jnp.argmax(v)
+        pick = p < 0
+        finished = pick & (v[worst] <= threshold)
+        p = jnp.where(pick, worst, p)
+        c = C_a[p]
+        idx, valid = working_rows(W)
+        z = covariance(idx, valid) @ c
+        zc = c @ z
+        independent = zc > dependence * prior_var[p]
+        A = jnp.concatenate([H, jnp.where(valid[:, None], C_a[idx], 0.0)])
+        rho = jnp.zeros_like(C).at[idx].add(jnp.where(valid, jnp.linalg.lstsq(A.T, B @ z - c)[0][m:], 0.0))
+        ratio = jnp.where(W & (rho < 0), u / jnp.where(rho < 0, -rho, 1.0), jnp.inf)
+        k = jnp.argmin(ratio)
+        t_full = jnp.where(independent, s[p] / jnp.where(independent, zc, 1.0), jnp.inf)
+        t = jnp.minimum(ratio[k], t_full)
+        move = ~finished & jnp.isfinite(t)
+        stuck = ~finished & ~jnp.isfinite(t)
+        d = jnp.where(move & independent, d - t * z, d)
+        u = jnp.where(move, u + t * jnp.where(W, rho, 0.0), u)
+        u = u.at[p].add(jnp.where(move, t, 0.0))
+        full = move & (t_full <= ratio[k])
+        drop = move & ~full
+        W = W.at[k].set(W[k] & ~drop).at[p].set(W[p] | full)  # k may equal p
+        u = u.at[k].set(jnp.where(drop, 0.0, u[k]))
+        skipped = skipped.at[p].set(skipped[p] | stuck)
+        p = jnp.where(full | finished | stuck, -1, p)
+        return d, W, u, p, it + 1, finished, skipped
+
+    def cond(state):
+        return ~state[5] & (state[4] < max_iter)
+
+    none = jnp.zeros(C.shape, bool)
+    init = (d, none, jnp.zeros_like(C), jnp.array(-1), jnp.array(0), jnp.array(False), none)
+    d, W, u, _, _, _, skipped = lax.while_loop(cond, body, init)
+    return W, u, jnp.where(skipped, C + C_a @ d, -jnp.inf)
+
+
+def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter):
+    """The QP step with inequalities: from the equality-constrained step `d` with covariance
+    `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
+    filtered as observations C_a d = -C (noise `r`), with one refinement pass (the same
+    update with the first estimate as prior mean). Returns `(d, P, W, u, excess)`: the step,
+    its covariance, and `dual_active_set`'s working set, multipliers and excess."""
+    W, u, excess = dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter)
+    d1, _, _ = sequential_update(d, P, C_a, -C, r, active=W)
+    d1, P1, _ = sequential_update(d1, P, C_a, -C, r, active=W)
+    return d1, P1, W, u, excess
+
+
 def batch_update(da, P, H, z, r):
     """The same estimate by the batch formula (for tests and reference only)."""
     S = H @ P @ H.T + jnp.diag(r)
@@ -127,4 +217,12 @@ def projection_matrix(H):
     return jnp.eye(p, dtype=H.dtype) - H.T @ jnp.linalg.solve(H @ H.T, H)
 
 
-__all__ = ["batch_update", "keep_knots_ordered", "observe_worst", "projection_matrix", "sequential_update"]
+__all__ = [
+    "batch_update",
+    "dual_active_set",
+    "inequality_step",
+    "keep_knots_ordered",
+    "observe_worst",
+    "projection_matrix",
+    "sequential_update",
+]

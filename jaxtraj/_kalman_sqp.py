@@ -24,12 +24,17 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   holds what both share: the QP step by the filter, its multipliers, the second-order
   correction, the Hessians.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`).
-* Path constraints C(t, x, u) <= 0 on the integration grid, the appendix-C way: the grid
-  points of an active set become observations C_a d = -C after the terminal ones. The active
-  set (`direction`): the previous iteration's (positive multipliers), less rows whose
-  multiplier turns negative, then the most violated predicted row one at a time (a primal
-  active-set QP on the same rank-one updates), skipping rows nearly dependent on those
-  already observed (adjacent grid points). The multipliers lambda = [lambda_E; nu >= 0] of
+* Inequalities (path constraints C(t, x, u) <= 0 on the integration grid, terminal
+  inequalities, control-bound rows) the appendix-C way: the rows of an active set become
+  observations C_a d = -C after the terminal ones. The active set (`direction`) by
+  Goldfarb & Idnani's dual active-set method on the same rank-one updates
+  (`jaxtraj._kalman.dual_active_set`): from the equality-constrained step, the most
+  violated row joins, or replaces a working row whose multiplier would turn negative; rows
+  nearly dependent on the working ones (adjacent grid points) can only replace one. With
+  the line search the step bound |d_i| <= radius is part of the same QP. Linearized
+  constraints inconsistent with the inequalities (a start at rest whose bounded control the
+  terminal rows alone fix) make an elastic step: the equalities observed with noise
+  (`elastic`), a penalty instead of a hard row. The multipliers lambda = [lambda_E; nu >= 0] of
   all rows enter the Lagrangian and the merit. A fresh direction first releases the
   multipliers of points that are strictly inactive and outside the QP's active set
   (`release_inactive`): a leftover nu there makes the merit's slope positive near the optimum.
@@ -55,7 +60,7 @@ import jax.numpy as jnp
 from ._bounds import require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver
-from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
+from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
     inequality_rows,
     lagrangian_gradient,
@@ -91,31 +96,18 @@ def convexify(hessian, H, min_curvature):
     return (V * w[None, :]) @ V.T
 
 
+#: A row whose variance left by the terminal equalities is below this fraction of its prior
+#: variance is pinned by them (far above the filter's relative noise `r_rel`, 1e-12, which is
+#: all such a row keeps): violated, it makes the linearized constraints inconsistent.
+ELASTIC_PINNED = 1e-8
+
+
 def _covariance(B):
     """P = B^-1, exactly symmetric. (A Cholesky solve gives the same steps to round-off, but
     the attitude runs of examples/attitude.py are sensitive enough to round-off to end
     elsewhere: 2.2714 instead of 2.2648954 on the quaternion form.)"""
     P = jnp.linalg.inv(B)
     return 0.5 * (P + P.T)
-
-
-def _follow_maximum(active, C, tol):
-    """Near the boundary (C >= -tol), move each active path row to the grid neighbour (same
-    component, previous or next point) with the largest C (the path values, `(N, q)`, or
-    None), if that is larger than its own: a touching point travels along the grid as the
-    iterates converge. `active` flags every inequality row (path rows first); the terminal
-    ones stay as they are."""
-    if C is None:
-        return active
-    N, q = C.shape
-    terminal = active[N * q :]
-    active = active[: N * q]
-    padded = jnp.pad(C, ((1, 1), (0, 0)), constant_values=-jnp.inf)
-    shift = jnp.argmax(jnp.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0) - 1  # (N, q)
-    shift = jnp.where(C >= -tol, shift, 0)
-    rows = jnp.arange(N)[:, None] + shift
-    moved = jnp.zeros((N, q), bool).at[rows, jnp.arange(q)[None, :]].max(active.reshape(N, q))
-    return jnp.concatenate([moved.reshape(-1), terminal])
 
 
 def _globalization(value):
@@ -150,9 +142,13 @@ class KalmanSQP(AbstractSolver):
       constraints are met to about this fraction of the innovation).
     - `path_active`: path points with C >= -`path_active` count as active constraints in
       the projected gradient (the KKT test).
-    - `path_dependence`: a path point joins the active set only if the step can still move
-      it independently: its variance left by the rows already observed is at least this
-      fraction of its prior variance (adjacent grid points are nearly dependent).
+    - `path_dependence`: an inequality row joins the active set as one more row only if the
+      step can still move it independently: its variance left by the rows already observed
+      is at least this fraction of its prior variance; a (nearly) dependent one (adjacent
+      grid points) can only replace a working row (`dual_active_set`).
+    - `elastic`: when the linearized constraints are inconsistent with the inequalities, the
+      terminal equalities of that step are observed with noise `elastic` x h P h^T (an l2
+      elastic step that honours every inequality).
     - `method`: sensitivity method, `"forward"` or `"unit"` (`"unit"` only with BFGS).
     """
 
@@ -166,7 +162,8 @@ class KalmanSQP(AbstractSolver):
     exact_iterations: int = 3
     path_active: float = 1e-6
     globalization: LineSearch | TrustRegion = eqx.field(default="line-search", converter=_globalization)
-    path_dependence: float = PATH_DEPENDENCE
+    path_dependence: float = 1e-12
+    elastic: float = 1e-6
     method: str = "forward"
 
     def __check_init__(self):
@@ -191,6 +188,7 @@ class KalmanSQP(AbstractSolver):
             "min_curvature": lambda: 0 < self.min_curvature < 1,
             "r_rel": lambda: 0 < self.r_rel < 1,
             "path_dependence": lambda: 0 < self.path_dependence < 1,
+            "elastic": lambda: 0 < self.elastic < 1,
             "exact_iterations": lambda: isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
         }
         check_settings("KalmanSQP", self, checks)
@@ -218,67 +216,61 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ the QP step
 
-    def direction(self, ev: Evaluation, B, lam, knots, dknots):
+    def direction(self, ev: Evaluation, B, lam, knots, dknots, radius=None):
         """The SQP step by the sequential filter: prior -P G_a with P = B^-1, observations
-        H d = -E with noise `r_rel` h P h^T; then the appendix-C knot ordering."""
+        H d = -E with noise `r_rel` h P h^T, the inequalities by a dual active set; then the
+        appendix-C knot ordering. With `radius`, a problem with inequalities bounds the step
+        in the QP, |d_i| <= radius (2 np more rows of the active set), so that a direction of
+        nearly zero curvature cannot take the step over and leave the inequalities' part of
+        it at round-off once the step is scaled down to the radius."""
         P = _covariance(B)
         prior = -P @ ev.G_a
         hph = jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H)
         r = self.r_rel * hph + 1e-300
-        d, P1, _ = sequential_update(prior, P, ev.H, -ev.E, r)
-        # One refinement pass (the same update with the first estimate as prior mean: its
-        # B-metric projection onto H d = -E). When H P H^T is ill-conditioned (rows nearly
-        # dependent in the metric of P), the residual left by a noise r relative to the
-        # diagonal h P h^T is not small (measured 8e-7 = 1.5 |E| on case 7 near its optimum,
-        # cond B 2e7); one pass brings it to 1e-13.
-        d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
+        d, P1 = self._equality_step(prior, P, ev, r)
         rows, m = inequality_rows(ev), ev.E.shape[0]
         if rows is not None:
-            # Inequalities C + C_a d <= 0 (path ones on the grid points, then terminal ones),
-            # the appendix-C way: the rows of the active set become observations C_a d = -C
-            # (the boundary), filtered after the equalities (each filtering with a
-            # refinement pass).
+            # Inequalities C + C_a d <= 0 (path ones on the grid points, then terminal ones) by
+            # the dual active-set method (`dual_active_set`): from the equality-constrained
+            # step, the most violated row joins, or replaces a working row whose multiplier
+            # would turn negative; a row (nearly) dependent on the working ones (its variance
+            # left below `path_dependence` of its prior variance: neighbouring grid points)
+            # can only replace one (`inequality_step`). The step is then the filter's on E's
+            # and the working rows (noise-free as E's: `r_rel`).
             C, C_a = rows
+            n_rows = C.shape[0]
+            if radius is not None:
+                eye = jnp.eye(d.shape[0], dtype=d.dtype)
+                C = jnp.concatenate([C, jnp.full(2 * d.shape[0], -radius, d.dtype)])
+                C_a = jnp.concatenate([C_a, eye, -eye])
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)  # before any observation
             r_c = self.r_rel * prior_var + 1e-300
-            d_eq = d
-
-            def filtered(active):
-                d, P2, _ = sequential_update(d_eq, P1, C_a, -C, r_c, active=active)
-                d, P2, _ = sequential_update(d, P1, C_a, -C, r_c, active=active)
-                return d, P2
-
-            # Active set. First the rows active at the previous iteration (positive
-            # multiplier; near the boundary moved to the grid neighbour with the largest C), less
-            # those whose multiplier turns negative for this QP (inequalities the step should
-            # leave). Then, one row per round (a primal active-set QP), the row the step would
-            # violate most, absorbed by the same rank-one update, until none is left (at most
-            # np rounds): a whole violated arc (96 of 168 grid points on the attitude
-            # problem's unconstrained optimum, against 21 degrees of freedom) is met through
-            # its worst points instead of being observed all at once. A row (nearly)
-            # dependent on E's and the active ones (its variance left below
-            # `path_dependence` of its prior variance: neighbouring grid points, or the last
-            # ones, which the terminal constraints fix) is skipped: it would add no freedom,
-            # only ill-conditioned gains and multipliers.
             threshold = 0.01 * self.ctol
+            max_rounds = 4 * d.shape[0] + 20
 
-            def solve_active(warm):
-                d, _ = filtered(warm)
-                active = warm & (self._stationary_multipliers(ev, B, d, warm)[m:] >= 0)
-                d, P2 = filtered(active)
-                d, P2, active = observe_worst(
-                    d, P2, C, C_a, r_c, prior_var, self.path_dependence, threshold, active, active, d.shape[0]
+            def step_on(d_eq, P1):
+                d, P2, active, _, excess = inequality_step(
+                    d_eq, P1, B, ev.H, C, C_a, r_c, prior_var, self.path_dependence, threshold, max_rounds
                 )
-                return d, P2, active, jnp.max(C + C_a @ d)
+                return d, P2, active, jnp.max(excess[:n_rows])
 
-            # With the warm start, a violated row can be left out as dependent on a warm row
-            # that no longer touches (the touching point moved to the next grid point): then
-            # the active set rebuilt from the violations alone is used if it leaves less than
-            # half the violation.
-            warm = solve_active(_follow_maximum(lam[m:] > 0, ev.C, self.path_active))
-            cold = solve_active(jnp.zeros(C.shape, bool))
-            use_cold = (warm[3] > threshold) & (cold[3] < 0.5 * warm[3])
-            d, P1, active, _ = jax.tree.map(lambda w, c: jnp.where(use_cold, c, w), warm, cold)
+            # Elastic mode. If the linearized constraints are inconsistent (a row (not a step
+            # bound) violated by more than `ctol` that neither E's rows nor the working ones let the step meet; or one that E's rows
+            # alone pin, its variance left by them below `ELASTIC_PINNED` of its prior: at a
+            # start at rest, the bounds of a control that E's rows alone fix), the equalities
+            # are filtered again with noise `elastic` x h P h^T: a penalty on |H d + E|
+            # instead of a hard row, so that the step honours every inequality and meets E as
+            # far as they allow (the filter's form of an l2 elastic / feasibility-restoration
+            # step).
+            pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
+            pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
+            hard = step_on(d, P1)
+            d, P1, active = jax.lax.cond(
+                pinned_violated | (hard[3] > self.ctol),
+                lambda: step_on(*self._equality_step(prior, P, ev, self.elastic * hph))[:3],
+                lambda: hard[:3],
+            )
+            active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t)
         # multipliers of [E; active C] from stationarity (nu >= 0, zero off the active set)
         lam_qp = self._stationary_multipliers(ev, B, d, None if rows is None else active)
@@ -299,6 +291,16 @@ class KalmanSQP(AbstractSolver):
         m = ev.E.shape[0]
         stale = (lam_qp[m:] == 0.0) & (rows[0] < -self.path_active)
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
+
+    def _equality_step(self, prior, P, ev, r):
+        """The filter on H d = -E with noise `r`, plus one refinement pass (the same update
+        with the first estimate as prior mean: its B-metric projection onto H d = -E). When
+        H P H^T is ill-conditioned (rows nearly dependent in the metric of P), the residual
+        left by a noise r relative to the diagonal h P h^T is not small (measured 8e-7 =
+        1.5 |E| on case 7 near its optimum, cond B 2e7); one pass brings it to 1e-13."""
+        d, _, _ = sequential_update(prior, P, ev.H, -ev.E, r)
+        d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
+        return d, P1
 
     @staticmethod
     def _stationary_multipliers(ev, B, d, active):

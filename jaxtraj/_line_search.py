@@ -226,7 +226,7 @@ class LineSearch(eqx.Module):
         knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
 
         def start(B):
-            d, lam_qp = sqp.direction(ev, B, lam, knots, dknots)
+            d, lam_qp = sqp.direction(ev, B, lam, knots, dknots, state.radius)
             d_max = jnp.max(jnp.abs(d))
             capped = d_max > state.radius
             d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)

@@ -115,16 +115,16 @@ def test_slsqp_reaches_each_reference_within_its_gap(name):
     assert float(jnp.max(jnp.abs(E), initial=0.0)) < 1e-6
 
 
-@pytest.mark.parametrize(
-    "name",
-    "min-time-double-integrator brachistochrone moon-lander singular-arc max-range hypersensitive zermelo goddard".split(),
-)
+@pytest.mark.parametrize("name", CLASSIC.names())
 def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     """From the naive start and from round-off-sized perturbations of it (absolute, so the
-    zero entries move too): SUCCESS at the reference every time, one optimum."""
+    zero entries move too): SUCCESS at the reference every time, one optimum. (Orbit raising
+    from the naive start only: its thrust direction passes through zero on the way, and the
+    perturbed starts end STALLED; issue 20.)"""
     entry = CLASSIC.get(name)
     objectives = []
-    for start in perturbed_starts(entry.start, absolute=True):  # eps = 0 is the start itself
+    starts = perturbed_starts(entry.start, absolute=True)  # eps = 0 is the start itself
+    for start in starts[:1] if name == "orbit-raising" else starts:
         sol = jt.solve(entry.problem, entry.control, start, simulator=SIM)
         assert jt.status_name(sol.status) == "SUCCESS"
         gap = float(sol.objective) - entry.reference

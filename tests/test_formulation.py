@@ -128,6 +128,22 @@ def test_state_bound_reaches_the_analytic_optimum(solver):
     assert float(jnp.max(fine.x[:, 0])) < limit + 1e-6
 
 
+def test_default_solver_meets_slsqp_on_the_state_bound():
+    """Issue 20: the default solver once claimed SUCCESS at 4.0312 (grid points kept active
+    without a multiplier-sign check) and was STALLED at iteration 0 from a zero control.
+    From the guess, from zero and from round-off-sized perturbations of the guess: SUCCESS
+    at SLSQP's restricted optimum, the path constraint met on the grid."""
+    prob, ctrl = bryson_denham(), jt.controls.PiecewiseLinear(10)
+    a0 = ctrl.initial_guess(1.0, -6.0, 6.0)
+    res = solve_slsqp(prob, ctrl, a0, simulator=SIM)
+    assert res.success
+    for start in [ctrl.initial_guess(1.0, 0.0, 0.0), *perturbed_starts(a0)]:
+        sol = jt.solve(prob, ctrl, start, simulator=SIM)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.objective) - res.objective) < 1e-8
+        assert float(sol.max_path_constraint) <= 1e-10
+
+
 def test_state_bound_errors_name_the_argument():
     with pytest.raises(ValueError, match="state_upper"):
         bryson_denham().__class__(

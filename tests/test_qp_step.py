@@ -1,0 +1,86 @@
+"""KalmanSQP's inequality QP step (`dual_active_set` + the filter, `inequality_step`) against
+an independent QP solver (qpOASES through CasADi) on random strictly convex QPs, with the
+multipliers checked by the KKT conditions."""
+
+import functools
+
+import casadi as ca
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from jaxtraj._kalman import inequality_step, sequential_update
+
+R_REL = 1e-12  # KalmanSQP's default relative noise
+
+
+@functools.cache
+def _step(n, me, mi):
+    """The equality filter (as `KalmanSQP._equality_step`), then `inequality_step`, jitted
+    once per shape."""
+
+    @jax.jit
+    def step(B, g, H, E, C, C_a):
+        P = jnp.linalg.inv(B)
+        P = 0.5 * (P + P.T)
+        r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
+        d, _, _ = sequential_update(-P @ g, P, H, -E, r)
+        d, P1, _ = sequential_update(d, P, H, -E, r)
+        prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
+        return inequality_step(d, P1, B, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20)
+
+    return step
+
+
+def _qpoases(B, g, H, E, C, C_a):
+    A = np.vstack([H, C_a])
+    qp = {"h": ca.DM(B).sparsity(), "a": ca.DM(A).sparsity()}
+    solver = ca.conic("S", "qpoases", qp, {"printLevel": "none", "error_on_fail": False})
+    lba = np.concatenate([-E, np.full(len(C), -np.inf)])
+    uba = np.concatenate([-E, -C])
+    out = solver(h=B, g=g, a=A, lba=lba, uba=uba, lbx=-np.inf, ubx=np.inf)
+    assert solver.stats()["success"]
+    return np.asarray(out["x"]).ravel()
+
+
+def _random_qp(seed, n, me, mi, neighbours):
+    """A strictly convex QP with a known feasible point x0 (about 70 % of the inequality rows
+    active there); with `neighbours`, rows 0 and 1 nearly dependent, as adjacent grid points."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    B = M @ M.T + 0.1 * np.eye(n)
+    g, H, C_a = rng.normal(size=n), rng.normal(size=(me, n)), rng.normal(size=(mi, n))
+    if neighbours and mi > 1:
+        C_a[1] = C_a[0] + 1e-3 * rng.normal(size=n)
+    x0 = rng.normal(size=n)
+    C = -C_a @ x0 - rng.uniform(0.0, 1.0, mi) * (rng.uniform(size=mi) < 0.3)
+    return B, g, H, -H @ x0, C, C_a
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.sampled_from([3, 7]),  # few shapes: one compilation each
+    me=st.sampled_from([0, 2]),
+    mi=st.sampled_from([4, 13]),
+    neighbours=st.booleans(),
+)
+def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours):
+    B, g, H, E, C, C_a = _random_qp(seed, n, me, mi, neighbours)
+    d, _, W, u, excess = _step(n, me, mi)(*(jnp.asarray(v) for v in (B, g, H, E, C, C_a)))
+    d, W, u = np.asarray(d), np.asarray(W), np.asarray(u)
+    x = _qpoases(B, g, H, E, C, C_a)
+    scale = 1.0 + np.max(np.abs(x))
+    assert np.max(np.abs(d - x)) <= 1e-6 * scale
+    # the KKT conditions of the filter's own step: feasible (a row skipped at a degenerate
+    # vertex, where most rows pass through x0, is violated by round-off only), the
+    # multipliers u >= 0 only on the working set, and stationarity with some lambda_E
+    assert np.max(C + C_a @ d) <= 1e-9 * scale
+    assert np.max(np.abs(E + H @ d), initial=0.0) <= 1e-9 * scale
+    assert np.max(np.asarray(excess)) <= 1e-9 * scale
+    assert np.all(u >= 0.0) and np.all(u[~W] == 0.0)
+    assert np.all(np.abs((C + C_a @ d)[W]) <= 1e-9 * scale)
+    residual = B @ d + g + C_a.T @ u
+    lam_E = np.linalg.lstsq(H.T, -residual, rcond=None)[0] if me else np.zeros(0)
+    assert np.max(np.abs(residual + H.T @ lam_E)) <= 1e-7 * (1.0 + np.max(np.abs(g)) + np.max(np.abs(u), initial=0.0))
