@@ -129,15 +129,17 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     reaches 0, which drops that row and retries p. A row (nearly) dependent on W (c_p^T z
     below `dependence` x its prior variance `prior_var`: neighbouring grid points) takes the
     partial step only: it replaces a working row instead of being skipped, so the active set
-    cannot cycle between grid neighbours. Every round either adds a row or strictly raises
+    cannot cycle between grid neighbours; so does any row once W holds n - m rows (n
+    parameters, m rows of `H`), which the noise floor of the filter (`r`) could otherwise
+    let pass as independent. Every round either adds a row or strictly raises
     the dual objective (the method's finite convergence); `max_iter` bounds the rounds.
 
     A violated row that no step can meet (dependent on W, and no multiplier of W blocks:
     the linearized constraints are inconsistent, or, at a vertex, the row is violated by
     the filter's round-off only) is skipped. Returns `(W, u, excess)`: the working set
-    (boolean, per row), its multipliers, and per row the violation left on a skipped row
-    (-inf on the others): round-off, or the inconsistency. The caller filters W's rows to
-    get the step itself.
+    (boolean, per row), its multipliers, and C + C_a d on the rows outside W (-inf on W's):
+    its maximum is <= `threshold` unless a row was skipped (round-off, or the inconsistency)
+    or `max_iter` ended the rounds. The caller filters W's rows to get the step itself.
     """
     m, n = H.shape[0], d.shape[0]
 
@@ -163,7 +165,7 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
         idx, valid = working_rows(W)
         z = covariance(idx, valid) @ c
         zc = c @ z
-        independent = zc > dependence * prior_var[p]
+        independent = (zc > dependence * prior_var[p]) & (jnp.sum(W) < n - m)  # rank: |W| <= n - m
         A = jnp.concatenate([H, jnp.where(valid[:, None], C_a[idx], 0.0)])
         rho = jnp.zeros_like(C).at[idx].add(jnp.where(valid, jnp.linalg.lstsq(A.T, B @ z - c)[0][m:], 0.0))
         ratio = jnp.where(W & (rho < 0), u / jnp.where(rho < 0, -rho, 1.0), jnp.inf)
@@ -188,8 +190,8 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
 
     none = jnp.zeros(C.shape, bool)
     init = (d, none, jnp.zeros_like(C), jnp.array(-1), jnp.array(0), jnp.array(False), none)
-    d, W, u, _, _, _, skipped = lax.while_loop(cond, body, init)
-    return W, u, jnp.where(skipped, C + C_a @ d, -jnp.inf)
+    d, W, u, *_ = lax.while_loop(cond, body, init)
+    return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
 
 def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter):

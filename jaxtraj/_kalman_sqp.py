@@ -46,9 +46,11 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   path points with C >= -`path_active`) <= `acceptable_gtol` (1 + |G|). The search runs
   until |V G_a| <= `gtol` (1 + |G|) (the usual outcome) or until no measurable progress is
   left (each globalization says when); that point is SUCCESS if it meets the guarantee,
-  otherwise STALLED. Two levels, because the projected gradient's floor is set by the
-  round-off of the sensitivities, not by the method: a single test at `gtol` would flip
-  between SUCCESS and STALLED with the last bits of the start, i.e. with the CPU.
+  otherwise STALLED (with the line search CONSTRAINT_STATIONARY where it is infeasible at a
+  stationary point of the violation: locally infeasible). Two levels, because the projected
+  gradient's floor is set by the round-off of the sensitivities, not by the method: a single
+  test at `gtol` would flip between SUCCESS and STALLED with the last bits of the start,
+  i.e. with the CPU.
 
 Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs/history.md`.
 """
@@ -147,8 +149,8 @@ class KalmanSQP(AbstractSolver):
       is at least this fraction of its prior variance; a (nearly) dependent one (adjacent
       grid points) can only replace a working row (`dual_active_set`).
     - `elastic`: when the linearized constraints are inconsistent with the inequalities, the
-      terminal equalities of that step are observed with noise `elastic` x h P h^T (an l2
-      elastic step that honours every inequality).
+      terminal equalities of that step are observed with noise `elastic` x the mean of
+      h P h^T (an l2 elastic step on |H d + E|^2 that honours every inequality).
     - `method`: sensitivity method, `"forward"` or `"unit"` (`"unit"` only with BFGS).
     """
 
@@ -248,28 +250,33 @@ class KalmanSQP(AbstractSolver):
             threshold = 0.01 * self.ctol
             max_rounds = 4 * d.shape[0] + 20
 
-            def step_on(d_eq, P1):
+            def step_on(d_eq, P1, B, H):
                 d, P2, active, _, excess = inequality_step(
-                    d_eq, P1, B, ev.H, C, C_a, r_c, prior_var, self.path_dependence, threshold, max_rounds
+                    d_eq, P1, B, H, C, C_a, r_c, prior_var, self.path_dependence, threshold, max_rounds
                 )
                 return d, P2, active, jnp.max(excess[:n_rows])
 
-            # Elastic mode. If the linearized constraints are inconsistent (a row (not a step
-            # bound) violated by more than `ctol` that neither E's rows nor the working ones let the step meet; or one that E's rows
-            # alone pin, its variance left by them below `ELASTIC_PINNED` of its prior: at a
-            # start at rest, the bounds of a control that E's rows alone fix), the equalities
-            # are filtered again with noise `elastic` x h P h^T: a penalty on |H d + E|
-            # instead of a hard row, so that the step honours every inequality and meets E as
-            # far as they allow (the filter's form of an l2 elastic / feasibility-restoration
-            # step).
+            # Elastic mode. If the linearized constraints are inconsistent (a row, not a step
+            # bound, violated by more than `ctol` that neither E's rows nor the working ones
+            # let the step meet; or one that E's rows alone pin, its variance left by them
+            # below `ELASTIC_PINNED` of its prior: at a start at rest, the bounds of a control
+            # that E's rows alone fix), the equalities are filtered again with one noise for
+            # all, `elastic` x the mean of h P h^T: a penalty on |H d + E|^2 (E as the user
+            # scaled it, so that repeated elastic steps end at a stationary point of that
+            # violation, which `locally_infeasible` recognizes) instead of hard rows. The step
+            # honours every inequality and meets E as far as they allow (the filter's form of
+            # an l2 elastic / feasibility-restoration step). There the QP's Hessian is
+            # B + H^T R^-1 H (R the equalities' noise) and it has no equality rows.
             pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
-            hard = step_on(d, P1)
-            d, P1, active = jax.lax.cond(
-                pinned_violated | (hard[3] > self.ctol),
-                lambda: step_on(*self._equality_step(prior, P, ev, self.elastic * hph))[:3],
-                lambda: hard[:3],
-            )
+            hard = step_on(d, P1, B, ev.H)
+
+            def elastic_step():
+                r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
+                B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
+                return step_on(*self._equality_step(prior, P, ev, r_soft), B_soft, ev.H[:0])[:3]
+
+            d, P1, active = jax.lax.cond(pinned_violated | (hard[3] > self.ctol), elastic_step, lambda: hard[:3])
             active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t)
         # multipliers of [E; active C] from stationarity (nu >= 0, zero off the active set)

@@ -86,25 +86,56 @@ def stationarity(ev, tol):
     if rows is None:
         return projected_gradient(ev.G_a, ev.H)
     C, C_a = rows
-    m = ev.E.shape[0]
+    return _signed_residual(ev.G_a, ev.H, C_a, C >= -tol)
+
+
+def infeasibility_stationarity(ev, tol):
+    """The same residual for the constraint violation phi = 1/2 |E|^2 + 1/2 |max(C, 0)|^2
+    (no equality rows): |grad phi + C_a^T nu| over nu >= 0 on the satisfied inequality rows
+    with C >= -`tol`. Zero (relative to |H| |E|) at a point where no step that keeps those
+    rows can lower the violation to first order: locally infeasible."""
+    rows = inequality_rows(ev)
+    grad = ev.H.T @ ev.E
+    if rows is None:
+        return jnp.linalg.norm(grad)
+    C, C_a = rows
+    grad = grad + C_a.T @ jnp.maximum(C, 0.0)
+    return _signed_residual(grad, ev.H[:0], C_a, (C >= -tol) & (C <= 0.0))
+
+
+def locally_infeasible(ev, tol, rtol):
+    """Whether `ev` violates its constraints at a stationary point of the violation
+    (`infeasibility_stationarity` <= `rtol` x (|H| |E| + |C_a| |max(C, 0)|)): a local minimum
+    of the violation that no solver started here can leave, reported as CONSTRAINT_STATIONARY
+    instead of STALLED."""
+    rows = inequality_rows(ev)
+    scale = jnp.linalg.norm(ev.H) * jnp.linalg.norm(ev.E)
+    if rows is not None:
+        scale = scale + jnp.linalg.norm(rows[1]) * jnp.linalg.norm(jnp.maximum(rows[0], 0.0))
+    return (scale > 0.0) & (infeasibility_stationarity(ev, tol) <= rtol * scale)
+
+
+def _signed_residual(g, H, C_a, keep):
+    """min |g + H^T lambda + C_a^T nu| over free lambda and nu >= 0 (nu = 0 off `keep`), by
+    the least-squares rounds of `stationarity` (an upper bound of the exact minimum)."""
+    m = H.shape[0]
 
     def solve(keep):
-        lam = multipliers(jnp.concatenate([ev.H, jnp.where(keep[:, None], C_a, 0.0)]), ev.G_a)
+        lam = multipliers(jnp.concatenate([H, jnp.where(keep[:, None], C_a, 0.0)]), g)
         return lam.at[m:].set(jnp.where(keep, lam[m:], 0.0))
 
     def cond(carry):
         keep, lam, rounds = carry
-        return jnp.any(keep & (lam[m:] < 0.0)) & (rounds < C.shape[0])
+        return jnp.any(keep & (lam[m:] < 0.0)) & (rounds < keep.shape[0])
 
     def body(carry):
         keep, lam, rounds = carry
         keep = keep & (lam[m:] >= 0.0)
         return keep, solve(keep), rounds + 1
 
-    keep = C >= -tol
     _, lam, _ = lax.while_loop(cond, body, (keep, solve(keep), 0))
     lam = lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
-    return jnp.linalg.norm(lagrangian_gradient(ev, lam))
+    return jnp.linalg.norm(g + jnp.concatenate([H, C_a]).T @ lam)
 
 
 def projected_gradient(G_a, H):

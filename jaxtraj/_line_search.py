@@ -41,6 +41,7 @@ from ._kkt import (
     kkt_outcome,
     lagrangian_gradient,
     least_squares_multipliers,
+    locally_infeasible,
     stationarity,
 )
 from ._sensitivity import Evaluation
@@ -313,6 +314,10 @@ class LineSearch(eqx.Module):
         )
         converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
         done = converged | stalled
+        infeasible = stalled & ~feasible  # tested only there (least squares over every row)
+        infeasible = lax.cond(
+            infeasible, lambda: locally_infeasible(new_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
+        )
 
         i = state.num_steps
         history = state.history.record(
@@ -350,7 +355,11 @@ class LineSearch(eqx.Module):
             num_integrations=state.num_integrations + 1,
             num_steps=i + 1,
             done=done,
-            status=Status.where(converged, Status.SUCCESS, Status.STALLED),
+            status=Status.where(
+                converged,
+                Status.SUCCESS,
+                Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED),
+            ),
             history=history,
         )
 

@@ -369,6 +369,8 @@ def test_batch_and_bad_start():
         {"globalization": "dogleg"},
         {"globalization": "trust-region"},
         {"acceptable_gtol": 1e-10},
+        {"elastic": 0.0},
+        {"elastic": 1.0},
     ],
 )
 def test_bad_settings(kwargs):
