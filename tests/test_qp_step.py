@@ -61,7 +61,7 @@ def _random_qp(seed, n, me, mi, neighbours):
     return B, g, H, -H @ x0, C, C_a
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, derandomize=True)  # the same examples on every machine
 @given(
     seed=st.integers(0, 2**31 - 1),
     n=st.sampled_from([3, 7]),  # few shapes: one compilation each
