@@ -21,6 +21,7 @@ which channels are bounded and whether a family saturates within the bounds fix 
 of rows at trace time.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -83,3 +84,14 @@ def bound_rows(problem, control, a):
     eye = jnp.eye(a.shape[0], dtype=a.dtype)
     values = jnp.concatenate([a[idx[upper]] - hi[upper], lo[lower] - a[idx[lower]]])
     return values, jnp.concatenate([eye[idx[upper]], -eye[idx[lower]]])
+
+
+def knot_gap_rows(control, a):
+    """`(values (K,), Jacobian (K, np))` of the rows t_k - t_{k+1} <= 0 (segments of
+    nonnegative length) of a family whose knots move with `a` (time layouts `"knots"`,
+    `"durations"`, `"interior_knots"`); None for equally spaced or fixed knots. Rows of the
+    same inequality set, so that a KKT test sees the multiplier of a collapsed segment."""
+    if control.time_layout in ("final_time", "fixed"):
+        return None
+    gap = lambda a: control.knots(a)[:-1] - control.knots(a)[1:]  # noqa: E731
+    return gap(a), jax.jacfwd(gap)(a)

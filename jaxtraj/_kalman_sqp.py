@@ -23,7 +23,9 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   `jt.TrustRegion` (`jaxtraj._trust_region`; exact Hessian, no path constraints). This module
   holds what both share: the QP step by the filter, its multipliers, the second-order
   correction, the Hessians.
-* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`).
+* Free knot times: the gaps t_k - t_{k+1} <= 0 are rows of the inequality set below
+  (`restricted`), so a segment may shrink to length 0 and the KKT test gives it its
+  multiplier; the appendix-C observations (`keep_knots_ordered`) still guard the order.
 * Inequalities (path constraints C(t, x, u) <= 0 on the integration grid, terminal
   inequalities, control-bound rows) the appendix-C way: the rows of an active set become
   observations C_a d = -C after the terminal ones. The active set (`direction`) by
@@ -59,7 +61,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._bounds import require_rows
+from ._bounds import knot_gap_rows, require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
@@ -205,7 +207,15 @@ class KalmanSQP(AbstractSolver):
         return self.exact_hessian(problem, control, a, simulator, lam)
 
     def restricted(self, problem, control, a, simulator):
-        return evaluate_restricted(problem, control, a, simulator, self.method)
+        """`evaluate_restricted` with the knot gaps t_k - t_{k+1} <= 0 of free knots as more
+        parameter rows (`Evaluation.V`): the QP holds a segment's length at >= 0 and the KKT
+        test gives a collapsed segment its multiplier (`knot_gap_rows`)."""
+        ev = evaluate_restricted(problem, control, a, simulator, self.method)
+        gaps = knot_gap_rows(control, a)
+        if gaps is None:
+            return ev
+        V, V_a = gaps if ev.V is None else (jnp.concatenate([ev.V, gaps[0]]), jnp.concatenate([ev.V_a, gaps[1]]))
+        return eqx.tree_at(lambda e: (e.V, e.V_a), ev, (V, V_a), is_leaf=lambda x: x is None)
 
     def exact_hessian(self, problem, control, a, simulator, lam):
         def grad_lagrangian(a):

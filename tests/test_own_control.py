@@ -80,9 +80,11 @@ def _energy_problem(bound=None):
 
 
 def _energy_on_line(sol):
-    """The optimum's nodes lie on u = 6 - 12 t: check them, and the energy 6."""
-    h1, u = float(sol.params[0]), np.asarray(sol.params[2:])
-    np.testing.assert_allclose(u, [6.0, 6.0 - 12.0 * h1, -6.0], atol=2e-4)
+    """The optimum is u = 6 - 12 t (energy 6) on [0, 1]: check u on a grid, and the energy.
+    Any h_1 holds it, h_1 = 0 or 1 too (a segment of length 0 at the bound h >= 0, whose
+    far node then does not matter): check the function, not the nodes."""
+    t = np.linspace(0.0, 1.0, 41)[1:-1]
+    np.testing.assert_allclose(np.asarray(CTRL(sol.params, t))[:, 0], 6.0 - 12.0 * t, atol=2e-4)
     assert float(sol.objective) == pytest.approx(6.0, rel=1e-8)
 
 
