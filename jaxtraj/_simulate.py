@@ -23,7 +23,7 @@ from jax import lax
 
 from ._checks import check_inputs, check_problem_and_control
 from ._problem import Problem
-from ._status import Status
+from ._status import Status, as_indexable
 from .controls import AbstractControl
 
 
@@ -244,7 +244,7 @@ class Trajectory(eqx.Module):
     u: jax.Array
     knots: jax.Array
     xf: jax.Array
-    status: Status
+    status: Status = eqx.field(converter=as_indexable)
 
     @property
     def tf(self):

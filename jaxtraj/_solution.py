@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._status import Status
+from ._status import Status, as_indexable
 
 
 class History(eqx.Module):
@@ -90,11 +90,10 @@ class Solution(eqx.Module):
     over the starts:
 
         sols = jt.solve_batch(prob, ctrl, a0s)      # or jax.vmap(jt.solve ...)(a0s)
-        jt.status_name(sols[3].status)              # "SUCCESS"
+        jt.status_name(sols[3].status)              # "SUCCESS" (or sols.status[3])
         jt.status_name(sols.status)                 # array of names, one per start
         ok = sols[sols.status == jt.Status.SUCCESS]
 
-    (`sols.status[i]` does not work: a `Status` cannot be indexed; index the Solution.)
     An unbatched Solution raises `TypeError` on `[]` and iteration.
     """
 
@@ -107,7 +106,7 @@ class Solution(eqx.Module):
     iterations: jax.Array
     integrations: jax.Array
     steps: jax.Array
-    status: Status
+    status: Status = eqx.field(converter=as_indexable)
     history: History
     max_path_constraint: jax.Array | None = None
     max_path_time: jax.Array | None = None

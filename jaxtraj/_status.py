@@ -2,6 +2,7 @@
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -17,7 +18,9 @@ class Status(eqx.Enumeration, metaclass=_Iterable):
 
     Compare with `==` (`sol.status == jt.Status.SUCCESS`); under `vmap` the comparison is
     element-wise. Combine with `Status.where(pred, a, b)`. `list(jt.Status)` gives the items,
-    `len(jt.Status)` their number.
+    `len(jt.Status)` their number. The status of a batched result (`jt.solve_batch`,
+    `jax.vmap` of a solve) indexes and iterates along its starts like the result itself:
+    `sols.status[i]`, `sols.status[mask]`, `for s in sols.status` (`as_indexable`).
     """
 
     SUCCESS = ""
@@ -31,6 +34,47 @@ class Status(eqx.Enumeration, metaclass=_Iterable):
     )
 
 
+_Item = type(Status.SUCCESS)  # equinox's EnumerationItem (not exported by name)
+
+
+class _IndexableItem(_Item):
+    """A `Status` item whose value may carry batch axes, indexed along the first one.
+
+    Equinox's item has no `__getitem__`; this subclass keeps everything else (`==`,
+    `Status.where`, `isinstance(x, jt.Status)`, the pytree layout), so a result's status
+    can be indexed like the result. No `__len__`: an unbatched status must stay truthy-safe.
+    """
+
+    def _batch_size(self, what: str) -> int:
+        if jnp.ndim(self._value) == 0:
+            raise TypeError(
+                f"{what} needs a batched status (from jax.vmap of a solve or jt.solve_batch); this one is a "
+                "single status."
+            )
+        return jnp.shape(self._value)[0]
+
+    def __getitem__(self, index):
+        n = self._batch_size("Indexing")
+        if isinstance(index, int | np.integer) and not -n <= index < n:
+            raise IndexError(f"start {index} out of range for a batch of {n}.")
+        if isinstance(index, _Item):
+            raise TypeError("index a status with integers, slices or boolean masks, not with a status.")
+        return _IndexableItem(self._value[index], self._enumeration)
+
+    def __iter__(self):
+        for i in range(self._batch_size("Iteration")):
+            yield self[i]
+
+
+def as_indexable(status):
+    """`status` as an item that indexes along its batch axis (`sols.status[i]`): the
+    converter of every result's `status` field. Anything else is returned unchanged (the
+    field's own checks report it)."""
+    if isinstance(status, _Item) and not isinstance(status, _IndexableItem):
+        return _IndexableItem(status._value, status._enumeration)
+    return status
+
+
 STATUS_NAMES = ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY")
 
 
@@ -40,8 +84,8 @@ def status_name(status):
     For an unbatched status (`jt.solve`) a `str`. For a batched one (`jax.vmap` of a solve,
     `jt.solve_batch`) a NumPy array of names with the batch shape:
     `jt.status_name(sols.status)[i]` is start i's name and
-    `jt.status_name(sols.status) == "SUCCESS"` a boolean mask. (`sols.status` itself cannot
-    be indexed; index the Solution instead: `jt.status_name(sols[i].status)`.)
+    `jt.status_name(sols.status) == "SUCCESS"` a boolean mask; `jt.status_name(sols.status[i])`
+    is the same name.
 
     **Raises:** `ValueError` for anything but a concrete `Status` item (e.g. inside `jit`).
     """

@@ -61,7 +61,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._checks import require_float64
-from ._status import Status
+from ._status import Status, as_indexable
 
 _DECAYS = ("linear", "quadratic")
 
@@ -450,7 +450,7 @@ class PopulationResult(eqx.Module):
     evaluations: jax.Array
     iterations: jax.Array
     history_best: jax.Array
-    status: Status
+    status: Status = eqx.field(converter=as_indexable)
 
 
 @eqx.filter_jit

@@ -102,6 +102,31 @@ def test_indexing_a_batched_solution(batch):
     assert float(tf) == float(sols.tf[1])
 
 
+def test_a_batched_status_indexes_like_its_solution(batch):
+    sols, singles = batch
+    names = ["SUCCESS", "SUCCESS", "NONFINITE"]
+    assert [jt.status_name(sols.status[i]) for i in range(3)] == names
+    assert [jt.status_name(s) for s in sols.status] == names
+    assert jt.status_name(sols.status[-1]) == "NONFINITE" and isinstance(sols.status[0], jt.Status)
+    assert bool(sols.status[1] == jt.Status.SUCCESS) and bool(sols.status[2] != jt.Status.SUCCESS)
+    mask = sols.status == jt.Status.SUCCESS
+    assert jt.status_name(sols.status[mask]).tolist() == ["SUCCESS", "SUCCESS"]
+    assert jt.status_name(sols.status[1:]).tolist() == names[1:]
+    # the same item as indexing the Solution, also after tree operations and inside jit
+    assert bool(sols.status[2] == sols[2].status)
+    assert bool(jax.tree.map(lambda x: x[2], sols).status == sols.status[2])
+    assert bool(jax.jit(lambda s: s.status[2] == jt.Status.NONFINITE)(sols))
+    # a Status works in Status.where as before
+    picked = jt.Status.where(jnp.asarray(True), sols.status[2], jt.Status.SUCCESS)
+    assert jt.status_name(picked) == "NONFINITE"
+    with pytest.raises(IndexError, match="out of range"):
+        sols.status[3]
+    with pytest.raises(TypeError, match="batched"):
+        singles[0].status[0]
+    with pytest.raises(TypeError, match="batched"):
+        list(singles[0].status)
+
+
 def test_solve_batch_solution_is_indexable():
     prob = jt.problems.analytic.min_energy_double_integrator()
     ctrl = jt.controls.PiecewiseLinear(3)
@@ -109,6 +134,10 @@ def test_solve_batch_solution_is_indexable():
     sols = jt.solve_batch(prob, ctrl, jnp.stack([a0, a0 + 0.05]), solver=SOLVER, max_steps=300)
     assert [jt.status_name(s.status) for s in sols] == list(jt.status_name(sols.status))
     assert float(sols[1].objective) == float(sols.objective[1])
+    assert jt.status_name(sols.status[1]) == jt.status_name(sols[1].status)
+    # a batched simulation's status indexes the same way
+    trajs = jax.vmap(lambda a: jt.simulate(prob, ctrl, a))(jnp.stack([a0, a0.at[0].set(jnp.nan)]))
+    assert [jt.status_name(s) for s in trajs.status] == ["SUCCESS", "NONFINITE"]
 
 
 def test_problem_name_does_not_recompile():

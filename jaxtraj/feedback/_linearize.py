@@ -6,7 +6,7 @@ import jax.numpy as jnp
 
 from .._checks import as_float64, check_inputs
 from .._simulate import RK4, simulation_status
-from .._status import Status
+from .._status import Status, as_indexable
 from ._common import check_shape, interp_rows
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import continuous_lqr, discrete_lqr, propagate_covariance
@@ -45,7 +45,7 @@ class Linearization(eqx.Module):
     Gd: jax.Array
     Ed: jax.Array
     dt: jax.Array
-    status: Status
+    status: Status = eqx.field(converter=as_indexable)
 
     def A_fn(self, t):
         """A(t) by linear interpolation between samples (clamped outside [0, tf])."""

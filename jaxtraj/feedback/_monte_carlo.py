@@ -7,7 +7,7 @@ import numpy as np
 
 from .._checks import as_float64, check_inputs
 from .._simulate import RK4, simulation_status
-from .._status import Status
+from .._status import Status, as_indexable
 from ._common import check_shape, symmetrize
 from ._errors import ThrustErrors
 from ._linearize import check_execution, check_simulator_rk4
@@ -68,7 +68,7 @@ class ClosedLoopTrajectory(eqx.Module):
     u: jax.Array
     du: jax.Array
     xf: jax.Array
-    status: Status
+    status: Status = eqx.field(converter=as_indexable)
 
 
 def simulate_closed_loop(
