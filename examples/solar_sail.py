@@ -81,6 +81,7 @@ STATUS_SHORT = {
     "CONSTRAINT_STATIONARY": "C",
     "NONFINITE": "N",
     "SIMULATION_FAILED": "F",
+    "DIVERGED": "D",
 }
 MISS_TOL = 1e-6  # `ss.diagnose`'s default: a terminal miss above it is no transfer
 COLLAPSED = 1e-8  # a segment shorter than this [time units] has collapsed

@@ -65,7 +65,10 @@ ValueError.
 **Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
 reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones)
 <= `gtol` (1 + |G|). STALLED: an outer iteration whose inner loop could not decrease L_A at all
-(two rejected steps in a row, none accepted) while feasible. MAX_ITERATIONS: `max_outer` outer
+(two rejected steps in a row, none accepted) while feasible. DIVERGED: a parameter or |G|
+past 1e20 (`_status.DIVERGENCE`, IPOPT's `diverging_iterates_tol` rule, shared by every
+solver): the search stops there, else a problem unbounded below, or one whose dynamics blow
+up off the feasible region, runs to the step limit with ever larger numbers. MAX_ITERATIONS: `max_outer` outer
 iterations or `max_steps` steps. NONFINITE: non-finite start. A non-finite or (L-BFGS)
 non-decreasing candidate is rejected.
 
@@ -87,7 +90,7 @@ from ._driver import AbstractSolver
 from ._kkt import multipliers
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
-from ._status import Status
+from ._status import Status, diverged
 from .controls import saturates_within, value_bounds
 
 # ------------------------------------------------------------------------------------------
@@ -574,6 +577,7 @@ class AugmentedLagrangian(AbstractSolver):
         feasible = (maxE <= self.ctol) & (maxV <= self.ctol)
         converged = inner_done & feasible & (pg <= self.gtol * scale)
         stalled = inner_done & stuck & (inner_accepted == 0) & feasible & ~converged
+        gone = diverged(ev.G, new_a) & ~converged
 
         cap = self.multiplier_max
         lam1 = jnp.clip(m.lam - m.rho * Es, -cap, cap)
@@ -593,7 +597,7 @@ class AugmentedLagrangian(AbstractSolver):
         value, grad = sel(value_outer, value), sel(grad_outer, grad)
         opt_state = sel(self._init_opt(z), opt_state)  # new coordinates: a fresh memory
         num_outer = state.num_outer + outer.astype(jnp.int32)
-        done = converged | stalled | (num_outer >= self.max_outer)
+        done = converged | stalled | gone | (num_outer >= self.max_outer)
 
         i = state.num_steps
         history = state.history.record(
@@ -625,7 +629,11 @@ class AugmentedLagrangian(AbstractSolver):
             num_steps=i + 1,
             done=done,
             status=Status.where(
-                converged, Status.SUCCESS, Status.where(stalled, Status.STALLED, Status.MAX_ITERATIONS)
+                converged,
+                Status.SUCCESS,
+                Status.where(
+                    gone, Status.DIVERGED, Status.where(stalled, Status.STALLED, Status.MAX_ITERATIONS)
+                ),
             ),
             history=history,
         )

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._status import Status, as_indexable
+from ._status import Status, as_indexable, diverged
 
 
 class History(eqx.Module):
@@ -116,8 +116,9 @@ class Solution(eqx.Module):
     def from_evaluation(cls, ev, params, *, projected_gradient, iterations, integrations, steps, done, status, history):
         """A solver's result at its final point: the values of the restricted evaluation `ev`
         there (an `Evaluation`; with path constraints, their worst value and its time), and
-        `status` if the solver stopped (`done`), else MAX_ITERATIONS. Shared by every solver's
-        `postprocess`."""
+        `status` if the solver stopped (`done`), else MAX_ITERATIONS; DIVERGED instead of
+        either failure when |G| or a parameter is past `DIVERGENCE` (a NONFINITE or SUCCESS
+        status stays). Shared by every solver's `postprocess`."""
         path = {}
         if ev.C is not None:
             worst = jnp.max(ev.C, axis=1)
@@ -134,7 +135,11 @@ class Solution(eqx.Module):
             iterations=iterations,
             integrations=integrations,
             steps=steps,
-            status=Status.where(done, status, Status.MAX_ITERATIONS),
+            status=Status.where(
+                diverged(ev.G, params) & (status != Status.SUCCESS) & (status != Status.NONFINITE),
+                Status.DIVERGED,
+                Status.where(done, status, Status.MAX_ITERATIONS),
+            ),
             history=history,
             **path,
         )

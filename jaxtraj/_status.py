@@ -32,6 +32,21 @@ class Status(eqx.Enumeration, metaclass=_Iterable):
         "The constraint error stopped decreasing while still above tolerance "
         "(a stationary point of the constraint norm)."
     )
+    DIVERGED = (
+        "The parameters or the objective grew past 1e20 without success "
+        "(the problem may be unbounded below, or the search left the region where it is defined)."
+    )
+
+
+#: |G| or a parameter beyond this ends a solve as DIVERGED unless it succeeded (IPOPT's
+#: `diverging_iterates_tol`, 1e20): without it an unbounded problem ends STALLED or at the
+#: step limit with numbers like -1e305.
+DIVERGENCE = 1e20
+
+
+def diverged(G, a):
+    """Whether the objective `G` or a parameter of `a` is beyond `DIVERGENCE` in magnitude."""
+    return (jnp.abs(G) > DIVERGENCE) | (jnp.max(jnp.abs(a)) > DIVERGENCE)
 
 
 _Item = type(Status.SUCCESS)  # equinox's EnumerationItem (not exported by name)
@@ -75,7 +90,15 @@ def as_indexable(status):
     return status
 
 
-STATUS_NAMES = ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY")
+STATUS_NAMES = (
+    "SUCCESS",
+    "MAX_ITERATIONS",
+    "STALLED",
+    "NONFINITE",
+    "SIMULATION_FAILED",
+    "CONSTRAINT_STATIONARY",
+    "DIVERGED",
+)
 
 
 def status_name(status):

@@ -55,7 +55,15 @@ def test_status_name_of_batched_and_single_statuses(batch):
     assert names.tolist() == ["SUCCESS", "SUCCESS", "NONFINITE"]
     np.testing.assert_array_equal(names == "SUCCESS", np.asarray(sols.status == jt.Status.SUCCESS))
     assert jt.status_name(singles[0].status) == "SUCCESS" and isinstance(jt.status_name(singles[0].status), str)
-    every = ("SUCCESS", "MAX_ITERATIONS", "STALLED", "NONFINITE", "SIMULATION_FAILED", "CONSTRAINT_STATIONARY")
+    every = (
+        "SUCCESS",
+        "MAX_ITERATIONS",
+        "STALLED",
+        "NONFINITE",
+        "SIMULATION_FAILED",
+        "CONSTRAINT_STATIONARY",
+        "DIVERGED",
+    )
     for name in every:
         assert jt.status_name(getattr(jt.Status, name)) == name
     # iterating the enumeration gives every item once, in declaration order
@@ -185,3 +193,28 @@ def test_history_fields_mean_the_same_for_every_solver(solver, details):
     assert bool(h.accepted[0])
     assert float(h.step_norm[0]) == pytest.approx(float(jnp.linalg.norm(sol.params - a0)), rel=1e-12)
     assert float(h.max_constraint_error[0]) == pytest.approx(float(sol.max_constraint_error), rel=1e-12)
+
+
+UNBOUNDED = jt.Problem(
+    lambda t, x, u, args: u,
+    x0=[0.0],
+    terminal=lambda tf, xf, args: jnp.stack([tf - 1.0]),
+    constraint_names=("final time",),
+    objective=lambda tf, xf, args: -jnp.exp(xf[0]),
+    name="unbounded",
+)
+
+
+@pytest.mark.parametrize("solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=lambda s: type(s).__name__)
+def test_an_unbounded_problem_ends_diverged(solver):
+    """x' = u in time 1, minimize -exp(x(1)): unbounded below. Every solver ends DIVERGED
+    (|G| past 1e20), not STALLED or MAX_ITERATIONS at -1e305; AugmentedLagrangian, which
+    would otherwise run on to the step limit, stops at the first step past the limit."""
+    ctrl = jt.controls.PiecewiseLinear(2)
+    sol = jt.solve(UNBOUNDED, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), solver, simulator=jt.RK4(4), max_steps=300)
+    assert jt.status_name(sol.status) == "DIVERGED"
+    assert float(sol.objective) < -1e20
+    if isinstance(solver, jt.AugmentedLagrangian):
+        n = int(sol.steps)
+        assert 1 < n < 300 and float(sol.history.objective[n - 2]) >= -1e20
+
