@@ -631,9 +631,7 @@ class AugmentedLagrangian(AbstractSolver):
             status=Status.where(
                 converged,
                 Status.SUCCESS,
-                Status.where(
-                    gone, Status.DIVERGED, Status.where(stalled, Status.STALLED, Status.MAX_ITERATIONS)
-                ),
+                Status.where(gone, Status.DIVERGED, Status.where(stalled, Status.STALLED, Status.MAX_ITERATIONS)),
             ),
             history=history,
         )

@@ -93,5 +93,9 @@ def knot_gap_rows(control, a):
     same inequality set, so that a KKT test sees the multiplier of a collapsed segment."""
     if control.time_layout in ("final_time", "fixed"):
         return None
-    gap = lambda a: control.knots(a)[:-1] - control.knots(a)[1:]  # noqa: E731
+
+    def gap(a):
+        knots = control.knots(a)
+        return knots[:-1] - knots[1:]
+
     return gap(a), jax.jacfwd(gap)(a)

@@ -205,7 +205,9 @@ UNBOUNDED = jt.Problem(
 )
 
 
-@pytest.mark.parametrize("solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=lambda s: type(s).__name__)
+@pytest.mark.parametrize(
+    "solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=lambda s: type(s).__name__
+)
 def test_an_unbounded_problem_ends_diverged(solver):
     """x' = u in time 1, minimize -exp(x(1)): unbounded below. Every solver ends DIVERGED
     (|G| past 1e20), not STALLED or MAX_ITERATIONS at -1e305; AugmentedLagrangian, which
@@ -217,4 +219,3 @@ def test_an_unbounded_problem_ends_diverged(solver):
     if isinstance(solver, jt.AugmentedLagrangian):
         n = int(sol.steps)
         assert 1 < n < 300 and float(sol.history.objective[n - 2]) >= -1e20
-
