@@ -51,7 +51,7 @@ def sequential_update(da, P, H, z, r, active=None):
     return da, P, s
 
 
-def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
+def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     """Seed 000 appendix C: keep the segment boundaries in order after the increment `da`.
 
     Each gap g_i = t_{i+1} - t_i that `da` would close (g_i + dg_i/da . da <= 0) becomes one
@@ -62,7 +62,10 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     noise, at exactly that fraction: the gap is held while every other parameter moves on.
     If the order is still violated, `da` is scaled so that every gap keeps at least
     1/(2 a_t) of its length. Gaps are linear in a, so every step `alpha da` with alpha in
-    [0, 1] keeps the order too.
+    [0, 1] keeps the order too. A gap of at most `collapse` that `da` would close is instead
+    closed (observed without noise at its whole length): a segment on its way to length 0
+    gets there in one step instead of shrinking by 1/a_t per step (a linear crawl that
+    slowed every other parameter with it).
 
     `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
     `(da, P)`.
@@ -70,18 +73,21 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None):
     gaps = knots[1:] - knots[:-1]
     D = dknots[1:] - dknots[:-1]  # d(gap)/da, (K, p)
     violated = gaps + D @ da <= 0.0
-    z_star = gaps / a_t
-    da, P, _ = sequential_update(da, P, -D, z_star, (z_star**2) / 12.0 + 1e-300, active=violated)
+    close = violated & (gaps <= collapse)
+    z_star = jnp.where(close, gaps, gaps / a_t)
+    exact = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D)  # (almost) noise-free, as KalmanSQP's r_rel
+    r_star = jnp.where(close, exact, (z_star**2) / 12.0) + 1e-300
+    da, P, _ = sequential_update(da, P, -D, z_star, r_star, active=violated)
     if keep is not None:
         short = (gaps > 0.0) & (gaps + D @ da < keep * gaps)
-        r = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D) + 1e-300  # (almost) noise-free, as KalmanSQP's r_rel
+        r = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D) + 1e-300
         da, P, _ = sequential_update(da, P, -D, (1.0 - keep) * gaps, r, active=short)
     closing = D @ da
     # A gap already at 0 (a collapsed segment, a duration h_k = 0 at its bound) is held there
     # by its observation (z* = 0, variance 0) up to round-off; only a real closing scales the
     # step (else one collapsed segment would freeze every other parameter).
     real = closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da)
-    floor = gaps / (2.0 * a_t)
+    floor = jnp.where(close, 0.0, gaps / (2.0 * a_t))
     limit = jnp.where(real & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
     return da * jnp.min(limit, initial=1.0), P
 

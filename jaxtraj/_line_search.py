@@ -297,7 +297,8 @@ class LineSearch(eqx.Module):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
-        pg = stationarity(new_ev, sqp.path_active)
+        kkt_ev = sqp.kkt_evaluation(control, new_ev, new_a)
+        pg = stationarity(kkt_ev, sqp.path_active)
         feasible = (maxE <= sqp.ctol) & (_max_inequality(new_ev) <= sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
@@ -316,7 +317,7 @@ class LineSearch(eqx.Module):
         done = converged | stalled
         infeasible = stalled & ~feasible  # tested only there (least squares over every row)
         infeasible = lax.cond(
-            infeasible, lambda: locally_infeasible(new_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
+            infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
         )
 
         i = state.num_steps
