@@ -75,8 +75,7 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     violated = gaps + D @ da <= 0.0
     close = violated & (gaps <= collapse)
     z_star = jnp.where(close, gaps, gaps / a_t)
-    exact = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D)  # (almost) noise-free, as KalmanSQP's r_rel
-    r_star = jnp.where(close, exact, (z_star**2) / 12.0) + 1e-300
+    r_star = jnp.where(close, 0.0, (z_star**2) / 12.0) + 1e-300  # closed: noise-free
     da, P, _ = sequential_update(da, P, -D, z_star, r_star, active=violated)
     if keep is not None:
         short = (gaps > 0.0) & (gaps + D @ da < keep * gaps)

@@ -99,6 +99,31 @@ def test_knot_ordering_holds_a_collapsed_segment_without_freezing_the_step():
         assert abs(gaps[1]) < 1e-12 and np.all(gaps >= -1e-15)
 
 
+def test_keep_knots_ordered_closes_a_gap_within_collapse():
+    """With `collapse`, a gap no longer than it that the step would close is closed exactly:
+    the step becomes the P-metric projection onto t2 - t1 = 0 (the batch formula), and no
+    scaling throttles the rest; a longer gap keeps the appendix-C behaviour (it keeps at least
+    1/(2 a_t) of its length)."""
+    from jaxtraj._kalman import keep_knots_ordered
+
+    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
+    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da: the middle gap
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(3, 3))
+        P = A @ A.T + 0.1 * np.eye(3)
+        da = np.array([0.1, 0.0, 0.5]) + 0.01 * rng.normal(size=3)  # t1 up: the middle gap would close
+        knots = jnp.array([0.0, 1.0, 1.0 + 1e-8, 2.0])
+        d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0, collapse=1e-6)
+        reference = da - P @ D.T @ np.linalg.solve(D @ P @ D.T, D @ da + 1e-8)
+        np.testing.assert_allclose(d, reference, atol=1e-12)
+        gaps = np.diff(np.asarray(knots + dknots @ d))
+        assert abs(gaps[1]) < 1e-15 and np.all(gaps >= -1e-15)
+        # the same gap with collapse below its length: not closed, at least 1/(2 a_t) kept
+        d0, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0, collapse=1e-9)
+        assert float(np.diff(np.asarray(knots + dknots @ d0))[1]) >= 1e-8 / 20 * (1 - 1e-9)
+
+
 def test_keep_knots_ordered_holds_half_a_closing_gap():
     """With `keep`, a gap the step would shrink below that fraction is held at exactly the
     fraction by a noise-free observation (the minimum-P^-1-norm change of the step, as the
