@@ -1,0 +1,163 @@
+"""Time to the first answer (issue 21): what a user waits for on a new problem.
+
+Per solver, on one Earth-Mars case (default: case 4, RK4 with 100 steps per segment, the
+published start): the first call of `jt.solve` split into trace + lower, XLA compile and the
+first run of the compiled program, the size of the lowered program (StableHLO lines), and
+the warm solve (best of `--repeats`). The in-memory caches are cleared before each solver,
+and the persistent compilation cache is off, so each first call is what a fresh process pays
+(the library itself is already imported and the JAX backend initialized).
+
+CasADi + IPOPT (optional bench extra) builds its own exact-Hessian single-shooting NLP of the
+same problem in the same run: the same RK4 steps and the same piecewise-linear control with
+free tf, written out again in CasADi symbols (no jaxtraj code), and solves it from the same
+start. Its "first answer" is the build (symbols, `nlpsol`) plus the first solve; the table
+gives each solver's first call as a ratio to it.
+
+Run: `python benchmarks/first_answer.py [--case 4] [--repeats 3]`.
+"""
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import jax
+import numpy as np
+
+import jaxtraj as jt
+from jaxtraj._driver import run
+from jaxtraj.problems import earth_mars
+
+jax.config.update("jax_enable_compilation_cache", False)
+
+try:
+    import casadi as ca
+
+    HAVE_CASADI = True
+except ImportError:
+    HAVE_CASADI = False
+
+SOLVERS = {
+    "KalmanSearch": jt.KalmanSearch(),
+    "KalmanSQP (default)": jt.KalmanSQP(),
+    "KalmanSQP trust region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
+    "AugmentedLagrangian": jt.AugmentedLagrangian(),
+}
+MAX_STEPS = 5000  # jt.solve's default
+
+
+def first_call(solver, problem, control, a0, simulator):
+    """(trace + lower, compile, first run, HLO lines, solution) of one solver, caches cleared."""
+    jax.clear_caches()
+    t0 = time.perf_counter()
+    lowered = run.lower(solver, problem, control, a0, simulator, MAX_STEPS, 0)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    sol = compiled(solver, problem, control, a0, simulator, MAX_STEPS, 0)
+    jax.block_until_ready(sol.params)
+    t3 = time.perf_counter()
+    return t1 - t0, t2 - t1, t3 - t2, len(lowered.as_text().splitlines()), sol
+
+
+def warm(solver, problem, control, a0, simulator, repeats):
+    jt.solve(problem, control, a0, solver, simulator=simulator).params.block_until_ready()
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jt.solve(problem, control, a0, solver, simulator=simulator).params.block_until_ready()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def casadi_single_shooting(control, a0, steps):
+    """Build and solve the case's single-shooting NLP in CasADi: (build s, solve s, tf, status).
+
+    Written the way CasADi is used for speed: one RK4 step as an SX function, `mapaccum` over
+    the steps of a segment, the segments chained in MX; IPOPT with its exact Hessian."""
+    c = earth_mars.CONSTANTS
+    K = control.num_segments
+    t0 = time.perf_counter()
+    x, ua, ub, tau, k, H = (ca.SX.sym(n, 3 if n == "x" else 1) for n in ("x", "ua", "ub", "tau", "k", "H"))
+    h = H / steps
+
+    def f(t, x, tau):
+        u = ua + (ub - ua) * tau  # linear on the segment
+        accel = c["thrust"] / (c["m0"] - c["mdot"] * t)
+        return ca.vertcat(
+            x[2] ** 2 / x[1] - c["mu"] / x[1] ** 2 + accel * ca.sin(u), x[0], -x[0] * x[2] / x[1] + accel * ca.cos(u)
+        )
+
+    t, dtau = (k + tau) * H, 1.0 / steps
+    k1 = f(t, x, tau)
+    k2 = f(t + h / 2, x + h / 2 * k1, tau + dtau / 2)
+    k3 = f(t + h / 2, x + h / 2 * k2, tau + dtau / 2)
+    k4 = f(t + h, x + h * k3, tau + dtau)
+    rk4 = ca.Function("rk4", [x, ua, ub, tau, k, H], [x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    segment = rk4.mapaccum("segment", steps)
+    a = ca.MX.sym("a", K + 2)  # u_0..u_K, tf (PiecewiseLinear(K), equally spaced nodes)
+    H_seg = a[K + 1] / K
+    taus = ca.DM(np.arange(steps) / steps).T
+    xk = ca.DM([0.0, 1.0, 1.0])
+
+    def rep(v):  # one column per step
+        return ca.repmat(v, 1, steps)
+
+    for seg in range(K):
+        xs = segment(xk, rep(a[seg]), rep(a[seg + 1]), taus, rep(float(seg)), rep(H_seg))
+        xk = xs[:, -1]
+    g = ca.vertcat(xk[0], xk[1] - c["rf"], xk[2] - np.sqrt(c["mu"] / c["rf"]))
+    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-10}
+    nlp = ca.nlpsol("nlp", "ipopt", {"x": a, "f": a[K + 1], "g": g}, opts)
+    t1 = time.perf_counter()
+    res = nlp(x0=np.asarray(a0), lbg=0.0, ubg=0.0)
+    t2 = time.perf_counter()
+    return t1 - t0, t2 - t1, float(res["x"][K + 1]), nlp.stats()["return_status"]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", type=int, default=4, choices=[4, 5])  # the cases with equally spaced nodes
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    problem, control, a0 = earth_mars.thesis_case(args.case)
+    simulator = jt.RK4(100)
+    print(
+        f"# Earth-Mars case {args.case}, RK4(100), first call of jt.solve per solver (caches cleared); "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}; "
+        f"command: python {' '.join(sys.argv)}; {time.strftime('%Y-%m-%d')}"
+    )
+    reference = None
+    if HAVE_CASADI:
+        build, solve, tf, status = casadi_single_shooting(control, a0, simulator.steps)
+        reference = build + solve
+        print(
+            f"# CasADi {ca.__version__} + IPOPT single shooting: build {build:.2f} s, first solve {solve:.2f} s, "
+            f"tf {tf:.8f} ({status})"
+        )
+    print()
+    print(
+        "| solver | first call (s) | trace + lower (s) | XLA compile (s) | first run (s) | HLO lines | warm (s) "
+        "| first / CasADi | status | tf |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---|")
+    if reference is not None:
+        print(
+            f"| CasADi + IPOPT | {reference:.2f} | {build:.2f} (build) | | {solve:.2f} | | | 1.00 | {status} | "
+            f"{tf:.8f} |"
+        )
+    for name, solver in SOLVERS.items():
+        lower, comp, first, lines, sol = first_call(solver, problem, control, a0, simulator)
+        total = lower + comp + first
+        w = warm(solver, problem, control, a0, simulator, args.repeats)
+        ratio = f"{total / reference:.2f}" if reference else ""
+        print(
+            f"| {name} | {total:.2f} | {lower:.2f} | {comp:.2f} | {first:.3f} | {lines} | {w:.3f} | {ratio} "
+            f"| {jt.status_name(sol.status)} | {float(sol.tf):.8f} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
