@@ -30,12 +30,10 @@ widened by 0.001 deg (`cone_backoff_deg`), so it holds between grid points too:
   +9.67e-4 deg.
 * KalmanSQP solves the *unconstrained* slew in 4 iterations (6 integrations), and the
   constrained one from rest in both forms with SUCCESS: 2.265204573 (quaternion and Euler
-  agree to 4e-11), 175 / 115 iterations (its first steps overshoot to large energies), the same
-  cone margin (2026-12-01, issue 17). From its own unconstrained optimum it stalls at 2.2652002
-  (1.9e-7 inside the widened cone on its grid, still outside the 50 deg one), and from the
-  AugmentedLagrangian optimum (max |E| 3.6e-10, above its `ctol`) it stays there (quaternion)
-  or slides to 2.26457, 2.8e-5 over the cone on its grid (Euler), STALLED: the line search
-  finds no merit decrease. These outcomes are reported as they are.
+  agree to 4e-11) in 5 iterations (7 integrations), the same cone margin; from its own
+  unconstrained optimum in 3, from the AugmentedLagrangian optimum in 1, SUCCESS in both forms
+  (2026-12-02, after the dual active-set QP of issue 20; before it: 175 / 115 iterations from
+  rest, STALLED from the two converged starts).
 
 Output: a Markdown table on stdout and in `OUT/results.md`, `OUT/results.json` (every row with
 its parameters), `OUT/sky_path.png` (the boresight's path around the sun: stereographic
