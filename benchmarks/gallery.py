@@ -12,7 +12,13 @@ Solvers: KalmanSQP (default), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and
 is installed, IPOPT (both on the same compiled evaluation). A solver that cannot honor a
 problem's constraints raises; the table says `refused`.
 
-Run: `python benchmarks/gallery.py [--problems lq bryson-denham] [--solvers default slsqp]`.
+With `--random N`, each jaxtraj solver also runs N random starts per problem
+(`jt.random_starts` around the naive start, `--spread`, key 0; `jt.solve_batch`, at most
+`--max-steps` steps) and a second table counts them: at the reference, SUCCESS elsewhere
+(another local optimum, or a false SUCCESS), and the other statuses.
+
+Run: `python benchmarks/gallery.py [--problems lq bryson-denham] [--solvers default slsqp]
+[--random 32 --spread 0.5]`.
 """
 
 import argparse
@@ -21,6 +27,7 @@ import platform
 import time
 
 import jax
+import numpy as np
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
@@ -41,7 +48,34 @@ def _run_jaxtraj(solver):
         sol = jt.solve(entry.problem, entry.control, entry.start, solver, simulator=SIM)
         return jt.status_name(sol.status), float(sol.objective), int(sol.iterations)
 
+    run.solver = solver
     return run
+
+
+def _at_reference(entry, status, J):
+    """SUCCESS and -tol <= J - reference <= gap + tol (module docs)."""
+    tol = 1e-6 * (1 + abs(entry.reference))  # the solvers' own accuracy (KalmanSearch's is looser)
+    return status == "SUCCESS" and -tol <= J - entry.reference <= entry.gap + tol
+
+
+def random_starts(entry, run, n, spread, max_steps):
+    """Counts over `n` random starts: (at the reference, SUCCESS elsewhere, {other status: count})."""
+    starts = jt.random_starts(entry.problem, entry.control, jax.random.key(0), n, around=entry.start, spread=spread)
+    sols = jt.solve_batch(
+        entry.problem,
+        entry.control,
+        starts,
+        run.solver,
+        simulator=SIM,
+        max_steps=max_steps,
+        progress=False,
+        history=False,
+    )
+    names, J = jt.status_name(sols.status), np.asarray(sols.objective)
+    at = sum(_at_reference(entry, s, j) for s, j in zip(names, J))
+    elsewhere = int(np.sum(names == "SUCCESS")) - at
+    others = {k: int(np.sum(names == k)) for k in sorted(set(names) - {"SUCCESS"})}
+    return at, elsewhere, others
 
 
 def _run_baseline(fn):
@@ -75,8 +109,7 @@ def measure(entry, run):
         run(entry)
         warm = min(warm, time.perf_counter() - t0)
     gap = J - entry.reference
-    tol = 1e-6 * (1 + abs(entry.reference))  # the solvers' own accuracy (KalmanSearch's is looser)
-    at = status == "SUCCESS" and -tol <= gap <= entry.gap + tol
+    at = _at_reference(entry, status, J)
     if status == "SUCCESS" and not at:
         status = "FALSE-SUCCESS?"
     return {"status": status, "J": J, "gap": gap, "at": at, "its": its, "first": first, "warm": warm}
@@ -86,14 +119,19 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--problems", nargs="*", default=list(CLASSIC.names()))
     parser.add_argument("--solvers", nargs="*", default=list(SOLVERS))
+    parser.add_argument("--random", type=int, default=0, help="random starts per problem (jaxtraj solvers)")
+    parser.add_argument("--spread", type=float, default=0.5, help="jt.random_starts spread")
+    parser.add_argument("--max-steps", type=int, default=2000, help="steps per random start")
+    parser.add_argument("--no-naive", action="store_true", help="only the random starts")
     args = parser.parse_args()
     print(f"# gallery: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, jax {jax.__version__}")
     print(f"# {time.strftime('%Y-%m-%d')}; RK4(40) per segment; naive starts")
     header = "| problem | reference | solver | status | objective | gap | at ref | its | first (s) | warm (s) |"
-    print(header)
-    print("|" + "---|" * (header.count("|") - 1))
+    if not args.no_naive:
+        print(header)
+        print("|" + "---|" * (header.count("|") - 1))
     tally = {s: 0 for s in args.solvers}
-    for name in args.problems:
+    for name in args.problems if not args.no_naive else ():
         entry = CLASSIC.get(name)
         for sname in args.solvers:
             r = measure(entry, SOLVERS[sname])
@@ -106,7 +144,30 @@ def main():
                 f"{'yes' if r['at'] else 'no'} | {r['its']} | {r['first']:.2f} | {r['warm']:.3f} |"
             )
     n = len(args.problems)
-    print("\nat the reference from the naive start: " + ", ".join(f"{s} {k}/{n}" for s, k in tally.items()))
+    if not args.no_naive:
+        print("\nat the reference from the naive start: " + ", ".join(f"{s} {k}/{n}" for s, k in tally.items()))
+    if args.random:
+        print(f"\n{args.random} random starts (spread {args.spread}, key 0, max_steps {args.max_steps}):\n")
+        print("| problem | solver | at ref | SUCCESS elsewhere | other statuses | time (s) |")
+        print("|---|---|---:|---:|---|---:|")
+        for name in args.problems:
+            entry = CLASSIC.get(name)
+            for sname in args.solvers:
+                if not hasattr(SOLVERS[sname], "solver"):
+                    continue
+                t0 = time.perf_counter()
+                try:
+                    at, elsewhere, others = random_starts(
+                        entry, SOLVERS[sname], args.random, args.spread, args.max_steps
+                    )
+                except ValueError:
+                    print(f"| {name} | {sname} | refused | | | |")
+                    continue
+                rest = ", ".join(f"{k} {v}" for k, v in others.items())
+                print(
+                    f"| {name} | {sname} | {at}/{args.random} | {elsewhere} | {rest} | {time.perf_counter() - t0:.1f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":
