@@ -90,7 +90,11 @@ def knot_gap_rows(control, a):
     """`(values (K,), Jacobian (K, np))` of the rows t_k - t_{k+1} <= 0 (segments of
     nonnegative length) of a family whose knots move with `a` (time layouts `"knots"`,
     `"durations"`, `"interior_knots"`); None for equally spaced or fixed knots. Rows of the
-    same inequality set, so that a KKT test sees the multiplier of a collapsed segment."""
+    same inequality set, so that a KKT test sees the multiplier of a collapsed segment.
+
+    The Jacobian is taken at `a` itself rather than reused from the step's linearization at
+    the previous point: an own family may map parameters to knots nonlinearly, and this is
+    one forward-mode pass through `knots` (no integration)."""
     if control.time_layout in ("final_time", "fixed"):
         return None
 

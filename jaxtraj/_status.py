@@ -7,10 +7,18 @@ import numpy as np
 
 
 class _Iterable(type(eqx.Enumeration)):
-    """Equinox's enumeration metaclass, plus iteration over the items in declaration order."""
+    """Equinox's enumeration metaclass, plus the item names in declaration order (`names`:
+    the string attributes of the class body, the ones equinox makes items) and iteration
+    over the items."""
+
+    def __new__(mcs, name, bases, namespace, **kwargs):
+        names = tuple(k for k, v in namespace.items() if isinstance(v, str) and not k.startswith("__"))
+        cls = super().__new__(mcs, name, bases, namespace, **kwargs)
+        type.__setattr__(cls, "names", names)
+        return cls
 
     def __iter__(cls):
-        return (getattr(cls, name) for name in STATUS_NAMES)
+        return (getattr(cls, name) for name in cls.names)
 
 
 class Status(eqx.Enumeration, metaclass=_Iterable):
@@ -90,15 +98,8 @@ def as_indexable(status):
     return status
 
 
-STATUS_NAMES = (
-    "SUCCESS",
-    "MAX_ITERATIONS",
-    "STALLED",
-    "NONFINITE",
-    "SIMULATION_FAILED",
-    "CONSTRAINT_STATIONARY",
-    "DIVERGED",
-)
+#: The item names in declaration order ("SUCCESS", "MAX_ITERATIONS", ...).
+STATUS_NAMES = Status.names
 
 
 def status_name(status):

@@ -75,6 +75,20 @@ def test_inactive_rows_are_skipped():
     np.testing.assert_allclose(got[1], want[1], rtol=1e-12, atol=1e-14)
 
 
+#: The three free knots t1, t2, t3 as the parameters: dknots/da for the knot-ordering tests.
+_DKNOTS = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
+_D_MIDDLE = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da: the middle gap
+
+
+def _knot_steps(base_step):
+    """20 random SPD covariances `P` (3 x 3), each with `base_step` plus a 0.01-sized random
+    perturbation as the step `da`."""
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(3, 3))
+        yield A @ A.T + 0.1 * np.eye(3), np.asarray(base_step) + 0.01 * rng.normal(size=3)
+
+
 def test_knot_ordering_holds_a_collapsed_segment_without_freezing_the_step():
     """Appendix C with a segment already collapsed (knots 0, 1, 1, 2; the parameters are the
     three free knots): a step closing that zero gap is corrected to keep it at 0 (its
@@ -85,13 +99,8 @@ def test_knot_ordering_holds_a_collapsed_segment_without_freezing_the_step():
     from jaxtraj._kalman import keep_knots_ordered
 
     knots = jnp.array([0.0, 1.0, 1.0, 2.0])
-    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
-    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        A = rng.normal(size=(3, 3))
-        P = A @ A.T + 0.1 * np.eye(3)
-        da = np.array([0.1, 0.0, 0.5]) + 0.01 * rng.normal(size=3)  # t1 up: the zero gap would close
+    dknots, D = _DKNOTS, _D_MIDDLE
+    for P, da in _knot_steps([0.1, 0.0, 0.5]):  # t1 up: the zero gap would close
         d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0)
         reference = da - P @ D.T @ np.linalg.solve(D @ P @ D.T, D @ da)
         np.testing.assert_allclose(d, reference, atol=1e-12)
@@ -106,13 +115,8 @@ def test_keep_knots_ordered_closes_a_gap_within_collapse():
     1/(2 a_t) of its length)."""
     from jaxtraj._kalman import keep_knots_ordered
 
-    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
-    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da: the middle gap
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        A = rng.normal(size=(3, 3))
-        P = A @ A.T + 0.1 * np.eye(3)
-        da = np.array([0.1, 0.0, 0.5]) + 0.01 * rng.normal(size=3)  # t1 up: the middle gap would close
+    dknots, D = _DKNOTS, _D_MIDDLE
+    for P, da in _knot_steps([0.1, 0.0, 0.5]):  # t1 up: the middle gap would close
         knots = jnp.array([0.0, 1.0, 1.0 + 1e-8, 2.0])
         d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0, collapse=1e-6)
         reference = da - P @ D.T @ np.linalg.solve(D @ P @ D.T, D @ da + 1e-8)
@@ -132,13 +136,8 @@ def test_keep_knots_ordered_holds_half_a_closing_gap():
     from jaxtraj._kalman import keep_knots_ordered
 
     knots = jnp.array([0.0, 1.0, 1.5, 3.0])  # gaps 1, 0.5, 1.5 (t1, t2, t3 = a0, a1, a2)
-    dknots = jnp.concatenate([jnp.zeros((1, 3)), jnp.eye(3)])
-    D = np.array([[-1.0, 1.0, 0.0]])  # d(t2 - t1)/da: the middle gap
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        A = rng.normal(size=(3, 3))
-        P = A @ A.T + 0.1 * np.eye(3)
-        da = np.array([0.45, 0.05, 0.3]) + 0.01 * rng.normal(size=3)  # the middle gap shrinks by ~80 %
+    dknots, D = _DKNOTS, _D_MIDDLE
+    for P, da in _knot_steps([0.45, 0.05, 0.3]):  # the middle gap shrinks by ~80 %
         d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, dknots, 10.0, keep=0.5)
         gaps = np.diff(np.asarray(knots + dknots @ d))
         np.testing.assert_allclose(gaps[1], 0.25, rtol=1e-9)  # half of 0.5 kept
