@@ -269,12 +269,24 @@ def _enable_compilation_cache():
 _HELD = contextlib.ExitStack()
 
 
+def _remove_if_empty(folder):
+    try:
+        os.rmdir(folder)
+    except OSError:  # not empty (the results, a batch to resume) or already gone
+        pass
+
+
 def _check_out(folder):
-    """Create --out, check it is writable and lock it for this run (`io.folder_lock`)."""
+    """Create --out, check it is writable and lock it for this run (`io.folder_lock`). A
+    folder this run created and left empty (it failed before writing) is removed at exit."""
     from .io import folder_lock
 
     try:
-        os.makedirs(folder, exist_ok=True)
+        try:
+            os.makedirs(folder)
+            _HELD.callback(_remove_if_empty, folder)  # runs after the lock's release
+        except FileExistsError:
+            pass
         probe = os.path.join(folder, ".write-test")
         with open(probe, "w") as f:
             f.write("")
@@ -467,30 +479,31 @@ def _solve(args):
         "solver": repr(solver),
         "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__, "python": sys.version.split()[0]},
     }
-    io.save(out, prob, best, traj, inputs=inputs, extra={"monte_carlo": summary_mc} if args.monte_carlo else None)
     written = ["summary.json", "arrays.npz"]
-    if not args.no_plot:
-        written += write_figures(
-            out,
-            prob,
-            ctrl,
-            best,
-            traj,
-            r_target=r_target,
-            title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}",
-        )
-        if sols is not None:
-            ok_idx = np.flatnonzero(ok)[:50]
-            trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
-            batch_figure(
-                os.path.join(out, "starts.png"),
+    with io.staged_folder(out, "--out") as stage:  # the files appear together or not at all
+        io.save(stage, prob, best, traj, inputs=inputs, extra={"monte_carlo": summary_mc} if args.monte_carlo else None)
+        if not args.no_plot:
+            written += write_figures(
+                stage,
                 prob,
-                sols.objective,
-                ok,
-                trajs,
-                title=f"{args.problem} ({label}): {args.starts} starts",
+                ctrl,
+                best,
+                traj,
+                r_target=r_target,
+                title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}",
             )
-            written.append("starts.png")
+            if sols is not None:
+                ok_idx = np.flatnonzero(ok)[:50]
+                trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
+                batch_figure(
+                    os.path.join(stage, "starts.png"),
+                    prob,
+                    sols.objective,
+                    ok,
+                    trajs,
+                    title=f"{args.problem} ({label}): {args.starts} starts",
+                )
+                written.append("starts.png")
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1
 

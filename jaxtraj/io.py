@@ -1,15 +1,18 @@
 """Result folders: `summary.json` (inputs, outputs, status) + `arrays.npz` (parameters,
-dense trajectory, history). Every file is written atomically (temporary file + rename), so an
-interrupted run never leaves a truncated file, and the summary, written last, carries the
-checksum of the arrays it belongs to. `load(dir)` gives the Solution and Trajectory back,
+dense trajectory, history). A folder is written whole or not at all (`staged_folder`: the
+files go into a temporary folder that is renamed into place), and every file is written
+atomically (temporary file + rename); where an existing folder is updated file by file, the
+summary, written last, carries the checksum of the arrays it belongs to. `load(dir)` gives the Solution and Trajectory back,
 parameters bit for bit, or a ValueError that names the damaged file. `folder_lock` keeps two
 runs out of one folder."""
 
 import contextlib
+import errno
 import hashlib
 import json
 import math
 import os
+import shutil
 import tempfile
 import zipfile
 
@@ -73,6 +76,45 @@ def atomic_write(path, write):
         raise
 
 
+@contextlib.contextmanager
+def staged_folder(folder, what="`folder`"):
+    """Write a result folder whole or not at all: yields a new temporary folder beside
+    `folder` to write into. When the block ends, the temporary folder becomes `folder` by one
+    rename where `folder` is absent or empty (a reader sees no folder or the whole one), and
+    otherwise its files replace `folder`'s one by one, `summary.json` last (its checksum ties
+    it to its arrays: `load` refuses a mix); other files of `folder` are kept. When the block
+    raises, the temporary folder is deleted and `folder` is untouched.
+
+    A rename is what the standard library offers for this (`os.rename` over an empty folder
+    is atomic on POSIX); no library writes a folder transactionally.
+
+    **Raises:** `ValueError` naming `what` when `folder` is a file.
+    """
+    folder = os.path.abspath(os.fspath(folder))
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f"{what}: {folder!r} is a file, not a folder.")
+    parent, name = os.path.split(folder)
+    os.makedirs(parent, exist_ok=True)
+    stage = tempfile.mkdtemp(dir=parent, prefix=f".{name}.partial-")
+    try:
+        yield stage
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(stage, 0o777 & ~umask)  # mkdtemp creates 0700; give the usual permissions
+        try:
+            os.rename(stage, folder)
+            return
+        except OSError as e:
+            if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+        for entry in sorted(os.listdir(stage), key=lambda n: n == "summary.json"):
+            os.replace(os.path.join(stage, entry), os.path.join(folder, entry))
+        os.rmdir(stage)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
 def _jsonable(value):
     """Plain JSON values: arrays to lists, NumPy scalars to Python, non-finite floats to None
     (strict JSON has no NaN or Infinity)."""
@@ -98,16 +140,16 @@ def _sha256(path):
 
 
 def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra=None):
-    """Write `arrays.npz` and then `summary.json` into `folder` (created if needed).
+    """Write `arrays.npz` and `summary.json` into `folder` (created if needed), whole or not
+    at all (`staged_folder`).
 
-    Each file is written atomically; `summary.json` is written last and records the SHA-256
-    of `arrays.npz`, so `load` recognizes a pair from two different saves (an interrupted
-    save). The summary is strict JSON: a non-finite number is `null`, and its name is listed
+    `summary.json` records the SHA-256 of `arrays.npz`, so `load` recognizes a pair from two
+    different saves (an interrupted update of a folder that holds other files too). The summary is strict JSON: a non-finite number is `null`, and its name is listed
     under `"nonfinite"`. `extra`: more JSON-able entries for the summary (e.g. the CLI's
     Monte Carlo results). Returns the summary (a dict).
 
     **Raises:** `ValueError` naming the entry if `inputs` or `extra` cannot be written as
-    JSON (nothing is written then).
+    JSON (nothing is written then), or when `folder` is a file.
     """
     n = int(sol.steps)
     arrays = {
@@ -161,13 +203,13 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
             json.dumps(_jsonable(summary[key]), allow_nan=False)
         except (TypeError, ValueError) as e:
             raise ValueError(f"`{key}` cannot be written as JSON: {e}") from None
-    os.makedirs(folder, exist_ok=True)
-    arrays_path = os.path.join(folder, "arrays.npz")
-    atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
-    summary["arrays_sha256"] = _sha256(arrays_path)
-    summary = _jsonable(summary)
-    text = json.dumps(summary, indent=2, allow_nan=False).encode()
-    atomic_write(os.path.join(folder, "summary.json"), lambda f: f.write(text))
+    with staged_folder(folder) as stage:
+        arrays_path = os.path.join(stage, "arrays.npz")
+        atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
+        summary["arrays_sha256"] = _sha256(arrays_path)
+        summary = _jsonable(summary)
+        text = json.dumps(summary, indent=2, allow_nan=False).encode()
+        atomic_write(os.path.join(stage, "summary.json"), lambda f: f.write(text))
     return summary
 
 

@@ -131,6 +131,7 @@ def test_bad_input_gives_one_line_error(args, message, tmp_path):
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("jaxtraj: error:") and message in lines[0], r.stderr
+    assert not (tmp_path / "o").exists()  # a failed run leaves no (empty) --out folder behind
 
 
 def test_empty_out_is_refused(tmp_path):

@@ -107,3 +107,38 @@ def _edit(folder, change):
     summary = json.loads((folder / "summary.json").read_text())
     change(summary)
     (folder / "summary.json").write_text(json.dumps(summary))
+
+
+def test_a_folder_is_written_whole_or_not_at_all(result, tmp_path, monkeypatch):
+    """A save that fails midway (here: the disk refuses the second file) leaves no folder
+    and no temporary files; a save into a new or empty folder appears by one rename; saving
+    into a folder with other files replaces the result's files and keeps the others."""
+    sol, traj = result
+    target = tmp_path / "run"
+    real_write = jt.io.atomic_write
+
+    def fail_on_summary(path, write):
+        if str(path).endswith("summary.json"):
+            raise OSError(28, "No space left on device")
+        real_write(path, write)
+
+    monkeypatch.setattr(jt.io, "atomic_write", fail_on_summary)
+    with pytest.raises(OSError, match="No space"):
+        jt.io.save(target, PROB, sol, traj)
+    assert list(tmp_path.iterdir()) == []  # neither the folder nor a leftover temporary one
+    monkeypatch.setattr(jt.io, "atomic_write", real_write)
+
+    renames = []
+    real_rename = jt.io.os.rename
+    monkeypatch.setattr(jt.io.os, "rename", lambda a, b: (renames.append(b), real_rename(a, b)))
+    jt.io.save(target, PROB, sol, traj)
+    assert renames == [str(target)] and sorted(p.name for p in target.iterdir()) == ["arrays.npz", "summary.json"]
+
+    (target / "notes.txt").write_text("mine")
+    other = eqx.tree_at(lambda s: s.params, sol, sol.params + 1.0)
+    jt.io.save(target, PROB, other, traj)
+    assert (target / "notes.txt").read_text() == "mine"
+    np.testing.assert_array_equal(jt.io.load(target)[0].params, other.params)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    with pytest.raises(ValueError, match=r"`folder`: .* is a file, not a folder"):
+        jt.io.save(target / "notes.txt", PROB, sol, traj)
