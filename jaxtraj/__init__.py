@@ -45,6 +45,7 @@ from ._kalman_search import KalmanSearch as KalmanSearch
 from ._kalman_sqp import KalmanSQP as KalmanSQP
 from ._line_search import LineSearch as LineSearch
 from ._problem import Problem as Problem, minimum_time as minimum_time
+from ._report import KKTReport as KKTReport, kkt_report as kkt_report
 from ._sensitivity import (
     Evaluation as Evaluation,
     evaluate as evaluate,

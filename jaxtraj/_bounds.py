@@ -64,26 +64,47 @@ def require_rows(problem, control, who: str) -> None:
         )
 
 
+def _bound_table(problem, control):
+    """The static layout of `bound_rows`: `(upper (idx, bound, names), lower (idx, bound,
+    names))` over the control-value entries with a finite bound of their channel (when rows
+    are needed and exact), then the free initial-state entries with a finite bound. Names:
+    `"<control> upper bound at a[i]"`, `"<state> lower bound (initial)"`."""
+    idx, lo, hi, what = np.zeros(0, int), np.zeros(0), np.zeros(0), []
+    if _control_rows(problem, control) and _exact(control):
+        idx, channel = (np.asarray(v, int) for v in control.value_indices)
+        lo, hi = (np.asarray(b)[channel] for b in problem._control_box)
+        names = problem.control_names or tuple(f"u{j}" for j in range(problem.num_controls))
+        what = [f"{names[j]} {{}} bound at a[{i}]" for i, j in zip(idx, channel)]
+    if problem.free_initial_state:
+        lo0, hi0 = problem.initial_state_bounds
+        idx = np.concatenate([idx, np.asarray(control.parameter_indices, int)])
+        lo, hi = np.concatenate([lo, lo0]), np.concatenate([hi, hi0])
+        states = problem.state_names or tuple(f"x{k}" for k in range(problem.x0.shape[0]))
+        what += [f"{states[k]} {{}} bound (initial)" for k in problem.free_initial_state]
+    upper, lower = np.isfinite(hi), np.isfinite(lo)
+    return (
+        (idx[upper], hi[upper], [w.format("upper") for w, u in zip(what, upper) if u]),
+        (idx[lower], lo[lower], [w.format("lower") for w, l in zip(what, lower) if l]),
+    )
+
+
 def bound_rows(problem, control, a):
     """`(values (r,), Jacobian (r, np))` of the rows a_i - upper <= 0 and lower - a_i <= 0:
     over the control-value entries i (of channel j, bounds of channel j) with a finite
     bound, unless no row is needed or the family's value bounds are not exact
     (`require_rows` decides whether that is an error); then over the free initial-state
     entries with a finite bound. None without rows."""
-    idx, lo, hi = np.zeros(0, int), np.zeros(0), np.zeros(0)
-    if _control_rows(problem, control) and _exact(control):
-        idx, channel = (np.asarray(v, int) for v in control.value_indices)
-        lo, hi = (np.asarray(b)[channel] for b in problem._control_box)
-    if problem.free_initial_state:
-        lo0, hi0 = problem.initial_state_bounds
-        idx = np.concatenate([idx, np.asarray(control.parameter_indices, int)])
-        lo, hi = np.concatenate([lo, lo0]), np.concatenate([hi, hi0])
-    upper, lower = np.isfinite(hi), np.isfinite(lo)
-    if not (upper.any() or lower.any()):
+    (iu, hi, _), (il, lo, _) = _bound_table(problem, control)
+    if not (iu.size or il.size):
         return None
     eye = jnp.eye(a.shape[0], dtype=a.dtype)
-    values = jnp.concatenate([a[idx[upper]] - hi[upper], lo[lower] - a[idx[lower]]])
-    return values, jnp.concatenate([eye[idx[upper]], -eye[idx[lower]]])
+    return jnp.concatenate([a[iu] - hi, lo - a[il]]), jnp.concatenate([eye[iu], -eye[il]])
+
+
+def bound_row_names(problem, control) -> list[str]:
+    """A name for each row of `bound_rows`, in its order."""
+    (_, _, upper), (_, _, lower) = _bound_table(problem, control)
+    return upper + lower
 
 
 def knot_gap_rows(control, a):

@@ -24,8 +24,9 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   holds what both share: the QP step by the filter, its multipliers, the second-order
   correction, the Hessians.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`);
-  the KKT test takes their gaps t_k - t_{k+1} <= 0 as inequality rows (`kkt_evaluation`), so
-  that a collapsed segment gets its multiplier.
+  the KKT test takes their gaps t_k - t_{k+1} <= 0 as inequality rows (`_kkt.with_knot_gaps`),
+  so that a collapsed segment gets its multiplier. (The gaps as QP rows too turned the steps:
+  +80 % iterations on Earth-Mars case 2, failures on cases 3 and 7; docs/history.md.)
 * Inequalities (path constraints C(t, x, u) <= 0 on the integration grid, terminal
   inequalities, control-bound rows) the appendix-C way: the rows of an active set become
   observations C_a d = -C after the terminal ones. The active set (`direction`) by
@@ -61,7 +62,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._bounds import knot_gap_rows, require_rows
+from ._bounds import require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
@@ -70,6 +71,7 @@ from ._kkt import (
     lagrangian_gradient,
     multipliers,
     stationarity,
+    with_knot_gaps,
 )
 from ._line_search import LineSearch
 from ._sensitivity import Evaluation, evaluate_restricted
@@ -208,19 +210,6 @@ class KalmanSQP(AbstractSolver):
 
     def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
-
-    @staticmethod
-    def kkt_evaluation(control, ev: Evaluation, a):
-        """`ev` with the knot gaps t_k - t_{k+1} <= 0 of free knots as more parameter rows
-        (`Evaluation.V`, `knot_gap_rows`), for the KKT test: a segment shrunk to (nearly) zero
-        length is held by its gap, whose multiplier the stationarity residual must see. The
-        step itself keeps the order by `keep_knots_ordered` (the gaps as QP rows turned the
-        steps: +80 % iterations on Earth-Mars case 2, failures on cases 3 and 7)."""
-        gaps = knot_gap_rows(control, a)
-        if gaps is None:
-            return ev
-        V, V_a = gaps if ev.V is None else (jnp.concatenate([ev.V, gaps[0]]), jnp.concatenate([ev.V_a, gaps[1]]))
-        return eqx.tree_at(lambda e: (e.V, e.V_a), ev, (V, V_a), is_leaf=lambda x: x is None)
 
     def exact_hessian(self, problem, control, a, simulator, lam):
         def grad_lagrangian(a):
@@ -362,7 +351,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=stationarity(self.kkt_evaluation(control, state.ev, state.a), self.path_active),
+            projected_gradient=stationarity(with_knot_gaps(control, state.ev, state.a), self.path_active),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

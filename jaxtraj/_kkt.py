@@ -3,8 +3,11 @@
 least-squares multipliers, the gradient of the Lagrangian, the stationarity residual with
 multipliers of the right sign, the projected gradient and the SQP termination rule."""
 
+import equinox as eqx
 import jax.numpy as jnp
 from jax import lax
+
+from ._bounds import knot_gap_rows
 
 
 def inequality_rows(ev):
@@ -21,6 +24,17 @@ def inequality_rows(ev):
     if not parts:
         return None
     return jnp.concatenate([p[0] for p in parts]), jnp.concatenate([p[1] for p in parts])
+
+
+def with_knot_gaps(control, ev, a):
+    """`ev` with the knot gaps t_k - t_{k+1} <= 0 of free knots as more parameter rows
+    (`Evaluation.V`, `_bounds.knot_gap_rows`), for the KKT test: a segment shrunk to (nearly)
+    zero length is held by its gap, whose multiplier the stationarity residual must see."""
+    gaps = knot_gap_rows(control, a)
+    if gaps is None:
+        return ev
+    V, V_a = gaps if ev.V is None else (jnp.concatenate([ev.V, gaps[0]]), jnp.concatenate([ev.V_a, gaps[1]]))
+    return eqx.tree_at(lambda e: (e.V, e.V_a), ev, (V, V_a), is_leaf=lambda x: x is None)
 
 
 def constraint_rows(ev):
@@ -86,7 +100,7 @@ def stationarity(ev, tol):
     if rows is None:
         return projected_gradient(ev.G_a, ev.H)
     C, C_a = rows
-    return _signed_residual(ev.G_a, ev.H, C_a, C >= -tol)
+    return signed_multipliers(ev.G_a, ev.H, C_a, C >= -tol)[0]
 
 
 def infeasibility_stationarity(ev, tol):
@@ -100,7 +114,7 @@ def infeasibility_stationarity(ev, tol):
         return jnp.linalg.norm(grad)
     C, C_a = rows
     grad = grad + C_a.T @ jnp.maximum(C, 0.0)
-    return _signed_residual(grad, ev.H[:0], C_a, (C >= -tol) & (C <= 0.0))
+    return signed_multipliers(grad, ev.H[:0], C_a, (C >= -tol) & (C <= 0.0))[0]
 
 
 def locally_infeasible(ev, tol, rtol):
@@ -115,9 +129,10 @@ def locally_infeasible(ev, tol, rtol):
     return (scale > 0.0) & (infeasibility_stationarity(ev, tol) <= rtol * scale)
 
 
-def _signed_residual(g, H, C_a, keep):
-    """min |g + H^T lambda + C_a^T nu| over free lambda and nu >= 0 (nu = 0 off `keep`), by
-    the least-squares rounds of `stationarity` (an upper bound of the exact minimum)."""
+def signed_multipliers(g, H, C_a, keep):
+    """`(residual, [lambda; nu])`: min |g + H^T lambda + C_a^T nu| over free lambda and
+    nu >= 0 (nu = 0 off `keep`), by the least-squares rounds of `stationarity` (an upper
+    bound of the exact minimum), and the multipliers that give it."""
     m = H.shape[0]
 
     def solve(keep):
@@ -135,7 +150,7 @@ def _signed_residual(g, H, C_a, keep):
 
     _, lam, _ = lax.while_loop(cond, body, (keep, solve(keep), 0))
     lam = lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
-    return jnp.linalg.norm(g + jnp.concatenate([H, C_a]).T @ lam)
+    return jnp.linalg.norm(g + jnp.concatenate([H, C_a]).T @ lam), lam
 
 
 def projected_gradient(G_a, H):

@@ -43,6 +43,7 @@ from ._kkt import (
     least_squares_multipliers,
     locally_infeasible,
     stationarity,
+    with_knot_gaps,
 )
 from ._sensitivity import Evaluation
 from ._solution import History
@@ -297,7 +298,7 @@ class LineSearch(eqx.Module):
         new_ev = jax.tree.map(lambda c, o: jnp.where(accept, c, o), cand, ev)
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
-        kkt_ev = sqp.kkt_evaluation(control, new_ev, new_a)
+        kkt_ev = with_knot_gaps(control, new_ev, new_a)
         pg = stationarity(kkt_ev, sqp.path_active)
         feasible = (maxE <= sqp.ctol) & (_max_inequality(new_ev) <= sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no

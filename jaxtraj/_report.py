@@ -1,0 +1,136 @@
+"""`jt.kkt_report`: the first-order optimality conditions of the restricted problem at one
+parameter vector, each residual by constraint name, with the multipliers that give them."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._bounds import bound_row_names
+from ._checks import check_inputs
+from ._kkt import inequality_rows, signed_multipliers, with_knot_gaps
+from ._problem import Problem
+from ._sensitivity import evaluate_restricted
+from ._simulate import RK4, AbstractSimulator, check_simulator
+from ._status import Status, as_indexable, status_name
+
+
+class KKTReport(eqx.Module):
+    """First-order KKT residuals of the restricted problem at `params` (`jt.kkt_report`).
+
+    - `objective`: G.
+    - `stationarity`: |G_a + H^T lambda + J^T nu| with free lambda on the terminal equalities
+      and nu >= 0 on the inequality rows within `active` of their bound (nu = 0 on the others):
+      the residual every solver's SUCCESS tests (`Solution.projected_gradient`).
+    - `complementarity`: max |nu_i g_i| over the inequality rows (a multiplier on a row that is
+      not at its bound).
+    - `violation`: by constraint name, how far it is violated (>= 0): |E_i| for a terminal
+      equality, max(g, 0) for an inequality; for a path constraint the largest over the
+      integration grid. Names: `constraint_names`, `path_names`, `terminal_inequality_names`,
+      `"<control> upper bound at a[i]"` for a control-bound row, `"<state> lower bound
+      (initial)"` for a free initial state, `"segment k length"` for free knots.
+    - `multipliers`: by the same names: lambda_i of an equality (dG*/db for E = c(a) - b),
+      nu >= 0 of an inequality (-dG*/db for g = c(a) - b <= 0); for a path constraint the sum
+      over the grid points (its total effect on the optimum).
+    - `max_violation`: the largest entry of `violation` (0 without constraints).
+    - `status`: the evaluation's status (NONFINITE, SIMULATION_FAILED or SUCCESS).
+    """
+
+    objective: jax.Array
+    stationarity: jax.Array
+    complementarity: jax.Array
+    max_violation: jax.Array
+    violation: dict[str, jax.Array]
+    multipliers: dict[str, jax.Array]
+    status: Status = eqx.field(converter=as_indexable)
+
+    def satisfied(self, ctol: float = 1e-8, gtol: float = 1e-6) -> bool:
+        """Whether the point is a first-order KKT point within the tolerances: the status is
+        SUCCESS, `max_violation` <= `ctol` and `stationarity` <= `gtol` (1 + |G|) (KalmanSQP's
+        SUCCESS rule with its `acceptable_gtol`)."""
+        return bool(
+            (self.status == Status.SUCCESS)
+            & (self.max_violation <= ctol)
+            & (self.stationarity <= gtol * (1.0 + jnp.abs(self.objective)))
+        )
+
+    def __str__(self):
+        lines = [
+            f"KKT report ({status_name(self.status)}): objective {float(self.objective):.10g}, "
+            f"stationarity {float(self.stationarity):.2e}, complementarity {float(self.complementarity):.2e}, "
+            f"max violation {float(self.max_violation):.2e}"
+        ]
+        width = max((len(k) for k in self.violation), default=0)
+        lines += [
+            f"  {k:<{width}}  violation {float(v):.2e}  multiplier {float(self.multipliers[k]):+.6e}"
+            for k, v in self.violation.items()
+        ]
+        return "\n".join(lines)
+
+
+def _row_names(problem: Problem, control) -> tuple[list[str], list[str], list[str]]:
+    """Names of the equality rows, of the path channels and of the other inequality rows
+    (terminal, bounds, knot gaps) in `_kkt.inequality_rows` order."""
+    other = list(problem.terminal_inequality_names) + bound_row_names(problem, control)
+    if control.time_layout not in ("final_time", "fixed"):
+        other += [f"segment {k} length" for k in range(control.num_segments)]
+    return list(problem.constraint_names), list(problem.path_names), other
+
+
+@eqx.filter_jit
+def _residuals(problem, control, a, simulator, active):
+    ev = with_knot_gaps(control, evaluate_restricted(problem, control, a, simulator), a)
+    m = ev.E.shape[0]
+    rows = inequality_rows(ev)
+    if rows is None:
+        g, keep, C_a = jnp.zeros(0), jnp.zeros(0, bool), jnp.zeros((0, a.shape[0]))
+    else:
+        (g, C_a), keep = rows, rows[0] >= -active
+    residual, lam = signed_multipliers(ev.G_a, ev.H, C_a, keep)
+    return ev.G, ev.E, g, lam[:m], lam[m:], residual, ev.status
+
+
+def kkt_report(
+    problem: Problem,
+    control,
+    params,
+    *,
+    simulator: AbstractSimulator = RK4(),
+    active: float = 1e-6,
+) -> KKTReport:
+    """Check the first-order optimality conditions at `params`, constraint by constraint.
+
+    An independent look at a result (`jt.kkt_report(prob, ctrl, sol.params)`): a fresh
+    evaluation at `params` with `simulator`, the inequality rows within `active` of their
+    bound taken as active (KalmanSQP's `path_active`), multipliers of the right sign by the
+    same least-squares rounds as the solvers' stationarity test, and every residual by
+    constraint name. `print(report)` gives a table; `report.satisfied(ctol, gtol)` the verdict.
+
+    **Raises:** `ValueError` for `params` of the wrong shape or a non-positive `active`.
+    """
+    a = check_inputs(problem, control, params)
+    check_simulator(simulator)
+    if not (isinstance(active, int | float) and active > 0):
+        raise ValueError(f"`active` must be a number > 0; got {active!r}.")
+    G, E, g, lam, nu, residual, status = _residuals(problem, control, a, simulator, float(active))
+    eq_names, path_names, other_names = _row_names(problem, control)
+    violation = {n: jnp.abs(e) for n, e in zip(eq_names, E)}
+    multipliers = dict(zip(eq_names, lam))
+    q = len(path_names)
+    n_path = g.shape[0] - len(other_names)
+    if q:
+        C, nu_C = g[:n_path].reshape(-1, q), nu[:n_path].reshape(-1, q)
+        for j, name in enumerate(path_names):
+            violation[name] = jnp.maximum(jnp.max(C[:, j]), 0.0)
+            multipliers[name] = jnp.sum(nu_C[:, j])
+    for name, gi, ni in zip(other_names, g[n_path:], nu[n_path:]):
+        violation[name] = jnp.maximum(gi, 0.0)
+        multipliers[name] = ni
+    return KKTReport(
+        objective=G,
+        stationarity=residual,
+        complementarity=jnp.max(jnp.abs(nu * g), initial=0.0),
+        max_violation=jnp.max(jnp.asarray(list(violation.values()) or [0.0])),
+        violation=violation,
+        multipliers={k: jnp.asarray(v) for k, v in multipliers.items()},
+        status=status,
+    )

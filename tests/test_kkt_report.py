@@ -1,0 +1,87 @@
+"""`jt.kkt_report`: residuals and multipliers by constraint name against closed-form
+sensitivities of the optimal value (lambda = -dG*/db for a constraint c(a) - b, equality or
+inequality), at optima that the restricted control contains exactly."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+
+
+def test_equality_multipliers_are_the_value_sensitivities():
+    """Minimum energy x'' = u from rest at 0 to (p, v) = (1, 0) in T = 1: J*(p, v, T) =
+    2 (3 p^2 - 3 p v T + v^2 T^2) / T^3, so lambda = -dJ*/d(p, v, T) = (-12, 6, 18)."""
+    prob = jt.problems.analytic.min_energy_double_integrator()
+    ctrl, sim = jt.controls.PiecewiseLinear(3), jt.RK4(4)
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), simulator=sim)
+    report = jt.kkt_report(prob, ctrl, sol.params, simulator=sim)
+    assert report.satisfied()
+    p, v, T = 1.0, 0.0, 1.0
+    dJ = (2 * (6 * p - 3 * v * T) / T**3, 2 * (-3 * p * T + 2 * v * T**2) / T**3, -6 * 3 * p**2 / T**4)
+    for name, d in zip(("position", "velocity", "final time"), dJ):
+        np.testing.assert_allclose(report.multipliers[name], -d, rtol=1e-6)
+    assert set(report.violation) == {"position", "velocity", "final time"}
+    assert float(report.complementarity) == 0.0 and float(report.max_violation) < 1e-12
+    assert "final time" in str(report) and "multiplier" in str(report)
+
+
+def test_bound_and_knot_rows_are_named_with_their_multipliers():
+    """Minimum-time x'' = u, |u| <= 1, rest at 0 to rest at p = 1: tf* = t1 + t2 with
+    accelerations a1 (up) and a2 (down), tf* = sqrt(2 p (1/a1 + 1/a2)) = 2. dtf*/da1 = -1/2, so
+    each active bound row has nu = 1/2; dtf*/dp = 1 gives lambda_x = -1, and a target speed v
+    shortens the braking arc one for one (dtf*/dv = -1): lambda_v = +1. The knot gaps are
+    inactive rows (nu = 0)."""
+    c = jt.problems.classic.min_time_double_integrator()
+    sol = jt.solve(c.problem, c.control, c.start)
+    report = jt.kkt_report(c.problem, c.control, sol.params)
+    assert report.satisfied()
+    m = report.multipliers
+    np.testing.assert_allclose([m["x"], m["v"]], [-1.0, 1.0], rtol=1e-8)
+    # the first level is at its upper bound, the second at its lower one
+    np.testing.assert_allclose([m["u1 upper bound at a[0]"], m["u1 lower bound at a[2]"]], [0.5, 0.5], rtol=1e-8)
+    assert float(m["u1 lower bound at a[0]"]) == 0.0 and float(m["u1 upper bound at a[2]"]) == 0.0
+    assert float(m["segment 0 length"]) == 0.0 and float(m["segment 1 length"]) == 0.0
+    # the start: infeasible, not stationary, named violations
+    start = jt.kkt_report(c.problem, c.control, c.start)
+    assert not start.satisfied() and float(start.violation["x"]) == pytest.approx(1.0)
+
+
+def _bryson_denham(limit):
+    return jt.Problem(
+        lambda t, x, u, args: jnp.stack([x[1], u[0]]),
+        [0.0, 1.0],
+        lambda tf, xf, args: xf - jnp.array([0.0, -1.0]),
+        ("x", "v"),
+        running_cost=lambda t, x, u, args: 0.5 * u[0] ** 2,
+        final_time=1.0,
+        state_names=("x", "v"),
+        state_upper=[limit, np.inf],
+    )
+
+
+def test_a_path_constraint_multiplier_is_the_value_sensitivity():
+    """Bryson-Denham with x <= l, 1/6 < l < 1/4: the optimum touches the bound once, at t =
+    1/2, with u = alpha + beta t on [0, 1/2] (mirrored), beta = 24 - 96 l, alpha = 24 l - 8, and
+    J*(l) = alpha^2 / 2 + alpha beta / 4 + beta^2 / 24. PiecewiseLinear(2) contains it and RK4
+    is exact on it, so the grid multipliers of "x upper bound" sum to -dJ*/dl (9.6 at l = 0.2)."""
+    limit = 0.2
+    prob, sim = _bryson_denham(limit), jt.RK4(4)
+    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(2))
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, -2.0, -2.0), simulator=sim)
+    report = jt.kkt_report(prob, ctrl, sol.params, simulator=sim)
+    alpha, beta = 24 * limit - 8, 24 - 96 * limit
+    np.testing.assert_allclose(report.objective, alpha**2 / 2 + alpha * beta / 4 + beta**2 / 24, rtol=1e-9)
+    dJ = alpha * 24 + (24 * beta - 96 * alpha) / 4 - 96 * beta / 12
+    assert report.satisfied()
+    np.testing.assert_allclose(report.multipliers["x upper bound"], -dJ, rtol=1e-6)
+    assert float(report.violation["x upper bound"]) < 1e-10 and float(report.complementarity) < 1e-8
+
+
+def test_bad_arguments_are_named():
+    prob = jt.problems.analytic.min_energy_double_integrator()
+    ctrl = jt.controls.PiecewiseLinear(3)
+    with pytest.raises(ValueError, match="`active`"):
+        jt.kkt_report(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), active=0.0)
+    with pytest.raises(ValueError, match="shape"):
+        jt.kkt_report(prob, ctrl, jnp.zeros(3))
