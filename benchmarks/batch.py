@@ -9,9 +9,11 @@ machine is shared). The loop is timed on the first min(N, 64) starts and extrapo
 Compilation is excluded from both (warm-up calls: for solve_batch on N NaN starts, which have
 the same shapes and end at once).
 
-Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers]` (the first
-four by default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the N = 10,000
-runs; `solvers` compares KalmanSearch, KalmanSQP and its trust region under solve_batch (N = 256).
+Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers] [default]` (the
+first four by default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the
+N = 10,000 runs; `solvers` compares KalmanSearch, KalmanSQP and its trust region under solve_batch
+(N = 256); `default` runs solve_batch as a user calls it (no device setup, default solver) against
+loops of single solves and of CasADi + IPOPT solves.
 """
 
 import os
@@ -90,6 +92,41 @@ def throughput():
             flush=True,
         )
     print()
+
+
+def default(n=256, subset=32):
+    """`jt.solve_batch` as a user calls it: no device setup, the default solver; against a
+    loop of single solves and a loop of CasADi + IPOPT solves (its own single-shooting NLP,
+    exact Hessian, built once; `first_answer.casadi_nlp`) on the same starts."""
+    devices = len(jax.devices())
+    print(
+        f"## solve_batch with no configuration (N = {n}, default solver, {devices} CPU device(s) after "
+        f"`import jaxtraj`; loops timed on {subset} starts)"
+    )
+    print()
+    a0s = starts(n)
+    solver = jt.KalmanSQP()
+    loop = loop_rate(a0s[:subset], solver)
+    rate, sols = batch_rate(a0s, solver)
+    ok = np.asarray(sols.status == jt.Status.SUCCESS)
+    rows = [("loop of jt.solve", loop), (f"jt.solve_batch ({devices} devices)", rate)]
+    try:
+        from first_answer import casadi_nlp
+
+        nlp, _ = casadi_nlp(CTRL, 100)
+        nlp(x0=np.asarray(a0s[0]), lbg=0.0, ubg=0.0)
+        t0, solved = time.perf_counter(), 0
+        for a in a0s[:subset]:
+            nlp(x0=np.asarray(a), lbg=0.0, ubg=0.0)
+            solved += bool(nlp.stats()["success"])
+        rows.append((f"loop of CasADi + IPOPT ({solved}/{subset} solved)", subset / (time.perf_counter() - t0)))
+    except ImportError:
+        pass
+    print("| run | solves/s | solve_batch / this |")
+    print("|---|---:|---:|")
+    for name, r in rows:
+        print(f"| {name} | {r:.1f} | {rate / r:.2f}x |")
+    print(f"\nsolve_batch: {ok.mean():.0%} SUCCESS\n", flush=True)
 
 
 def solvers(n=256, subset=32):
@@ -261,6 +298,15 @@ def memory(runs):
     print()
 
 
+SECTIONS = {
+    "throughput": throughput,
+    "where": where_time_goes,
+    "scaling": scaling,
+    "solvers": solvers,
+    "default": default,
+}
+
+
 def main():
     print(
         f"# solve_batch benchmark — {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
@@ -273,7 +319,7 @@ def main():
         if name == "memory" and "--skip-memory" not in sys.argv:
             memory([(1000, 1000, False), (10000, 1000, False), (1000, 1000, True), (4000, 1000, True)])
         elif name != "memory":
-            {"throughput": throughput, "where": where_time_goes, "scaling": scaling, "solvers": solvers}[name]()
+            SECTIONS[name]()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"(total {time.perf_counter() - t0:.0f} s; this process peaked at {rss:.0f} MiB)")
 

@@ -71,11 +71,12 @@ def warm(solver, problem, control, a0, simulator, repeats):
     return best
 
 
-def casadi_single_shooting(control, a0, steps):
-    """Build and solve the case's single-shooting NLP in CasADi: (build s, solve s, tf, status).
+def casadi_nlp(control, steps):
+    """The case's single-shooting NLP in CasADi with IPOPT (exact Hessian, tol 1e-10, silent):
+    `(nlp, build s)`; solve with `nlp(x0=a0, lbg=0.0, ubg=0.0)`.
 
     Written the way CasADi is used for speed: one RK4 step as an SX function, `mapaccum` over
-    the steps of a segment, the segments chained in MX; IPOPT with its exact Hessian."""
+    the steps of a segment, the segments chained in MX."""
     c = earth_mars.CONSTANTS
     K = control.num_segments
     t0 = time.perf_counter()
@@ -110,10 +111,15 @@ def casadi_single_shooting(control, a0, steps):
     g = ca.vertcat(xk[0], xk[1] - c["rf"], xk[2] - np.sqrt(c["mu"] / c["rf"]))
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-10}
     nlp = ca.nlpsol("nlp", "ipopt", {"x": a, "f": a[K + 1], "g": g}, opts)
-    t1 = time.perf_counter()
+    return nlp, time.perf_counter() - t0
+
+
+def casadi_single_shooting(control, a0, steps):
+    """Build and solve the case's single-shooting NLP (`casadi_nlp`): (build s, solve s, tf, status)."""
+    nlp, build = casadi_nlp(control, steps)
+    t0 = time.perf_counter()
     res = nlp(x0=np.asarray(a0), lbg=0.0, ubg=0.0)
-    t2 = time.perf_counter()
-    return t1 - t0, t2 - t1, float(res["x"][K + 1]), nlp.stats()["return_status"]
+    return build, time.perf_counter() - t0, float(res["x"][control.num_segments + 1]), nlp.stats()["return_status"]
 
 
 def main():

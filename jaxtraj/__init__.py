@@ -25,6 +25,38 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
+
+def _one_cpu_device_per_core():
+    """Split the CPU into one JAX device per core, so that `jt.solve_batch` and
+    `jt.multistart` shard a batch over every core by default: XLA runs one CPU device on
+    about one core (2.2x the loop of single solves with two devices on two cores against
+    1.3x with one; benchmarks/RESULTS.md). Single computations run on the first device as
+    before. Left alone where the user chose: `JAX_NUM_CPU_DEVICES` or an earlier
+    `jax.config.update("jax_num_cpu_devices", N)`, the host device count in XLA_FLAGS, an
+    initialized `jax.distributed`, or JAXTRAJ_CPU_DEVICES=N (1: JAX's single device); a
+    later `jax.config.update` still wins.
+    Only possible before JAX starts its backends (not when jaxtraj is imported after a JAX
+    computation)."""
+    if "xla_force_host_platform_device_count" in _os.environ.get("XLA_FLAGS", ""):
+        return
+    if _jax.config.jax_num_cpu_devices != -1:  # set by the user (config or JAX_NUM_CPU_DEVICES)
+        return
+    if getattr(_jax.distributed, "is_initialized", lambda: False)():  # a multi-host setup of its own
+        return
+    try:
+        count = int(_os.environ.get("JAXTRAJ_CPU_DEVICES", "0"))
+    except ValueError:
+        count = 0
+    if count < 1:
+        count = len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1)
+    try:
+        _jax.config.update("jax_num_cpu_devices", count)
+    except RuntimeError:  # JAX already computed something: its backends are fixed
+        pass
+
+
+_one_cpu_device_per_core()
+
 from . import (
     controls as controls,
     feedback as feedback,

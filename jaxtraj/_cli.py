@@ -372,8 +372,6 @@ def _solve(args):
     out = args.out or os.path.join("results", f"{slug}-{stamp}")
     _check_out(out)
 
-    if args.starts > 1:
-        _use_all_cores()
     import jax
     import numpy as np
 
@@ -515,21 +513,6 @@ def _reproduce(args):
 
     reproduce_main(args.out)
     return 0
-
-
-def _use_all_cores():
-    """One CPU device per core for a batch: `solve_batch` shards over the devices, and XLA
-    runs a CPU device on one core (benchmarks/batch.py). Only possible before JAX starts its
-    backends (not when `main` is called from a program that already ran JAX code), and left
-    alone when XLA_FLAGS sets the device count."""
-    import jax
-
-    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
-        return
-    try:
-        jax.config.update("jax_num_cpu_devices", os.cpu_count() or 1)
-    except RuntimeError:
-        pass
 
 
 def main(argv=None):

@@ -431,16 +431,31 @@ def test_two_hosts_with_jax_distributed(batch, tmp_path):
             np.testing.assert_array_equal(g, w)
 
 
-def test_import_leaves_the_cpu_device_count_open():
-    """`import jaxtraj` runs no JAX computation, so a program (and the CLI, for `--starts`) can
-    still split the CPU into one device per core for solve_batch."""
-    code = "import jax, jaxtraj; jax.config.update('jax_num_cpu_devices', 3); print(len(jax.devices('cpu')))"
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+def _cpu_devices(code, **env):
+    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "JAXTRAJ_CPU_DEVICES")}
     proc = subprocess.run(
-        [sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code + "; print(len(jax.devices('cpu')))"],
+        env={**base, **env, "PYTHONPATH": REPO},
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.strip() == "3"
+    return int(proc.stdout.strip())
+
+
+def test_import_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
+    """`import jaxtraj` gives JAX one CPU device per core (solve_batch and multistart then
+    use every core); the user's own count wins: set before (JAX_NUM_CPU_DEVICES, XLA_FLAGS),
+    after (`jax.config.update`, possible because the import runs no JAX computation), or by
+    JAXTRAJ_CPU_DEVICES; after a JAX computation the import changes nothing."""
+    cores = len(os.sched_getaffinity(0))
+    assert _cpu_devices("import jax, jaxtraj") == cores
+    assert _cpu_devices("import jax, jaxtraj; jax.config.update('jax_num_cpu_devices', 3)") == 3
+    assert _cpu_devices("import jax, jaxtraj", JAX_NUM_CPU_DEVICES="3") == 3
+    assert _cpu_devices("import jax, jaxtraj", XLA_FLAGS="--xla_force_host_platform_device_count=3") == 3
+    assert _cpu_devices("import jax, jaxtraj", JAXTRAJ_CPU_DEVICES="1") == 1
+    assert _cpu_devices("import jax; jax.numpy.ones(1); import jaxtraj") == 1
 
 
 def test_import_sets_the_xla_cpu_option_xla_accepts():

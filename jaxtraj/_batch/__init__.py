@@ -27,11 +27,11 @@ How a batch runs:
   uninterrupted one does on the same devices (another device count or `lanes` can change
   results by round-off only). To read a finished folder back, call `solve_batch` again
   with the same inputs and `resume=True`: nothing is recomputed.
-* CPU cores: XLA runs one CPU device on (mostly) one core. To use several cores, split the
-  host into devices before JAX starts computing: `jax.config.update("jax_num_cpu_devices",
-  os.cpu_count())` right after the imports (`import jaxtraj` runs no JAX computation), or
-  `XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`; `solve_batch` then shards over
-  all of them (the CLI does this for `--starts`).
+* CPU cores: XLA runs one CPU device on (mostly) one core, so `import jaxtraj` splits the
+  host into one device per core (when JAX has not computed anything yet and the user chose
+  no count: `JAX_NUM_CPU_DEVICES`, `jax.config.update("jax_num_cpu_devices", N)` before or
+  after the import, `XLA_FLAGS=--xla_force_host_platform_device_count=N`, an initialized
+  `jax.distributed`, or `JAXTRAJ_CPU_DEVICES=N`); `solve_batch` shards over all of them.
 
 Several hosts (multi-host is the scaling path; there is no cluster code here). Start the same
 script on every host with the same inputs and call `jax.distributed.initialize` first; the
