@@ -38,6 +38,7 @@ from ._simulate import (
 )
 from ._status import Status
 from .controls import AbstractControl
+from .controls._base import run_concretely
 
 METHODS = ("forward", "unit", "fd")
 
@@ -87,6 +88,9 @@ def forward_jacobian(problem, control, a, simulator):
     return xf, jac, simulation_status(jnp.all(oks), xf, jac)
 
 
+_segment_jacobian = eqx.filter_jit(jax.jacfwd(segment_data, argnums=1))
+
+
 def _affine_segment_basis(control, a):
     """Orthonormal bases U_k (K, m + 2, r) of the column spaces of dtheta_k/da for a family
     that declares `segment_data` affine in a (`control.affine`), else None. The Jacobian of
@@ -94,11 +98,16 @@ def _affine_segment_basis(control, a):
     the largest rank over the segments, smaller ranks padded with zero columns."""
     if not control.affine:
         return None
+    point = np.random.default_rng(0).uniform(0.5, 2.0, a.shape)
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
+        # closed over: traced arrays of the control (e.g. saturation limits under a jit) are
+        # fine unless segment_data uses them
+        jacobian, args = jax.jit(lambda a: jax.jacfwd(segment_data, argnums=1)(control, a)), (point,)
+    else:  # an argument: one compilation per family and shape, whatever the call site
+        jacobian, args = _segment_jacobian, (control, point)
     try:
-        with jax.ensure_compile_time_eval():
-            point = jnp.asarray(np.random.default_rng(0).uniform(0.5, 2.0, a.shape))
-            jac = np.asarray(jax.jacfwd(segment_data, argnums=1)(control, point))
-    except jax.errors.JAXTypeError:  # the control itself holds traced arrays
+        jac = run_concretely(jacobian, *args)
+    except jax.errors.JAXTypeError:  # segment_data depends on traced arrays of the control
         return None
     bases = []
     for jk in jac:

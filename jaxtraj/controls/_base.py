@@ -134,14 +134,15 @@ class AbstractControl(eqx.Module):
             raise ValueError(
                 f"`a` must be finite; got non-finite entries at indices {bad.tolist()} (values {arr[bad].tolist()})."
             )
-        # concrete values even when called while tracing (e.g. a constant `a` closed over
-        # by a jitted function)
-        with jax.ensure_compile_time_eval():
-            self._check_values(arr)
-            knots = np.asarray(self.knots(jnp.asarray(arr)))
+        self._check_values(arr)
+        knots = self.concrete_knots(arr)
         if not knots[-1] > 0:
             raise ValueError(f"`a`: the final time tf must be > 0 for {name}; got tf = {knots[-1]}.")
         return arr
+
+    def concrete_knots(self, a) -> np.ndarray:
+        """`knots(a)` of a concrete `a` as NumPy, by one compiled program (`run_concretely`)."""
+        return run_concretely(_knots, self, np.asarray(a, np.float64))
 
     def _check_increasing(self, knots: np.ndarray, what: str) -> None:
         d = np.diff(knots)
@@ -153,6 +154,19 @@ class AbstractControl(eqx.Module):
                 f"expected t_{i} < t_{i + 1}, got t_{i} = {knots[i]:g}, t_{i + 1} = {knots[i + 1]:g} "
                 f"(all knots: {np.array2string(knots, precision=6)})."
             )
+
+
+_knots = eqx.filter_jit(lambda control, a: control.knots(a))
+
+
+def run_concretely(jitted, *args) -> np.ndarray:
+    """`jitted(*args)` (a `jax.jit` or `eqx.filter_jit` function of concrete arguments) as NumPy, also
+    while a transform traces (e.g. a constant `a` closed over by a jitted function): lowered
+    and compiled apart from the enclosing trace, one program. (Run op by op under
+    `jax.ensure_compile_time_eval`, every jnp operation compiled a program of its own.)"""
+    compiled = jitted.lower(*args).compile()
+    with jax.ensure_compile_time_eval():
+        return np.asarray(compiled(*args))
 
 
 def saturates_within(control: AbstractControl, lower=None, upper=None) -> bool:

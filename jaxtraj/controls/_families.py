@@ -142,7 +142,7 @@ class PiecewiseLinear(AbstractControl):
 
     def _check_values(self, a):
         if self.free_times:
-            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "node times")
+            self._check_increasing(self.concrete_knots(a), "node times")
 
 
 class PiecewiseParabolic(AbstractControl):
@@ -236,7 +236,7 @@ class PiecewiseParabolic(AbstractControl):
 
     def _check_values(self, a):
         if self.free_times:
-            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "node times")
+            self._check_increasing(self.concrete_knots(a), "node times")
 
 
 class PiecewiseConstant(AbstractControl):
@@ -315,7 +315,7 @@ class PiecewiseConstant(AbstractControl):
 
     def _check_values(self, a):
         if self.free_times:
-            self._check_increasing(np.asarray(self.knots(jnp.asarray(a))), "switch times")
+            self._check_increasing(self.concrete_knots(a), "switch times")
 
 
 def spline_kernel(t, degree: int):
