@@ -15,8 +15,10 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(VENV)/bin/jaxtraj solve earth-mars --case 4 --out results/earth-mars-case4
 
+# test files spread over the cores (pytest-xdist; a file stays in one process, where its tests
+# share compiled solvers), at most 4 processes (each can hold a few GB of compiled programs)
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=30
+	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
 
 # lint, format check, and the documentation site built with --strict (into a throwaway folder)
 check: $(STAMP)

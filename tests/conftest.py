@@ -1,4 +1,6 @@
 import gc
+import shutil
+import tempfile
 
 import jax
 import pytest
@@ -6,6 +8,18 @@ import pytest
 import jaxtraj  # noqa: F401  (turns on float64)
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+# A persistent compilation cache private to this test process (one per xdist worker: JAX's
+# file cache does not guard a reader against another process's half-written entry). The
+# module fixture below drops the in-memory caches; programs that several modules compile
+# again (the same problem, solver and shapes) then come from disk instead of XLA.
+_CACHE_DIR = tempfile.mkdtemp(prefix="jaxtraj-test-cache-")
+jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(_CACHE_DIR, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
