@@ -88,7 +88,7 @@ def forward_jacobian(problem, control, a, simulator):
     return xf, jac, simulation_status(jnp.all(oks), xf, jac)
 
 
-_segment_jacobian = eqx.filter_jit(jax.jacfwd(segment_data, argnums=1))
+_segment_jacobian = jax.jacfwd(segment_data, argnums=1)
 
 
 def _affine_segment_basis(control, a):
@@ -99,14 +99,8 @@ def _affine_segment_basis(control, a):
     if not control.affine:
         return None
     point = np.random.default_rng(0).uniform(0.5, 2.0, a.shape)
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
-        # closed over: traced arrays of the control (e.g. saturation limits under a jit) are
-        # fine unless segment_data uses them
-        jacobian, args = jax.jit(lambda a: jax.jacfwd(segment_data, argnums=1)(control, a)), (point,)
-    else:  # an argument: one compilation per family and shape, whatever the call site
-        jacobian, args = _segment_jacobian, (control, point)
     try:
-        jac = run_concretely(jacobian, *args)
+        jac = run_concretely(_segment_jacobian, control, point)
     except jax.errors.JAXTypeError:  # segment_data depends on traced arrays of the control
         return None
     bases = []

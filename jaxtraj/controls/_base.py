@@ -156,17 +156,27 @@ class AbstractControl(eqx.Module):
             )
 
 
-_knots = eqx.filter_jit(lambda control, a: control.knots(a))
+def _knots(control, a):
+    return control.knots(a)
 
 
-def run_concretely(jitted, *args) -> np.ndarray:
-    """`jitted(*args)` (a `jax.jit` or `eqx.filter_jit` function of concrete arguments) as NumPy, also
-    while a transform traces (e.g. a constant `a` closed over by a jitted function): lowered
-    and compiled apart from the enclosing trace, one program. (Run op by op under
-    `jax.ensure_compile_time_eval`, every jnp operation compiled a program of its own.)"""
-    compiled = jitted.lower(*args).compile()
+_COMPILED = {}  # fn -> eqx.filter_jit(fn), for run_concretely
+
+
+def run_concretely(fn, control, *args) -> np.ndarray:
+    """`fn(control, *args)` of concrete arguments as NumPy, also while a transform traces
+    (e.g. a constant `a` closed over by a jitted function): one program per family and shape,
+    lowered and compiled apart from the enclosing trace. (Run op by op under
+    `jax.ensure_compile_time_eval`, every jnp operation compiled a program of its own.) A
+    control holding traced arrays (limits under a jit) is evaluated op by op, which works
+    unless `fn` uses those arrays (then a `jax.errors.JAXTypeError`)."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
+        with jax.ensure_compile_time_eval():
+            return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
+    jitted = _COMPILED.setdefault(fn, eqx.filter_jit(fn))
+    compiled = jitted.lower(control, *args).compile()
     with jax.ensure_compile_time_eval():
-        return np.asarray(compiled(*args))
+        return np.asarray(compiled(control, *args))
 
 
 def saturates_within(control: AbstractControl, lower=None, upper=None) -> bool:
