@@ -87,3 +87,18 @@ def load_example(name):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def energy_problem(**changes):
+    """`jt.problems.analytic.min_energy_double_integrator()` rebuilt as a `jt.Problem` from its
+    functions, with `changes` (bounds, names, ...) as more keywords."""
+    base = jt.problems.analytic.min_energy_double_integrator(1.0)
+    return jt.Problem(
+        base.dynamics,
+        base.x0,
+        base.terminal,
+        base.constraint_names,
+        objective=base.objective,
+        args=base.args,
+        **changes,
+    )

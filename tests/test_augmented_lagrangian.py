@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+from helpers import energy_problem
 
 import jaxtraj as jt
 from jaxtraj._augmented_lagrangian import (
@@ -139,17 +140,7 @@ def test_control_bounds_against_slsqp():
     """|u| <= 5 on the min-energy double integrator (the free optimum peaks at 6; |u| <= 4
     would need bang-bang): the bound is active; the result equals SLSQP with the same bounds
     on the same restricted problem."""
-    base = jt.problems.analytic.min_energy_double_integrator(1.0)
-    prob = jt.Problem(
-        base.dynamics,
-        base.x0,
-        base.terminal,
-        base.constraint_names,
-        objective=base.objective,
-        args=base.args,
-        control_lower=-5.0,
-        control_upper=5.0,
-    )
+    prob = energy_problem(control_lower=-5.0, control_upper=5.0)
     ctrl, sim = C.PiecewiseLinear(4), jt.RK4(4)
     a0 = ctrl.initial_guess(1.2, 0.0, 0.0)
     sol = jt.solve(prob, ctrl, a0, AL, simulator=sim)

@@ -5,6 +5,7 @@ import logging
 
 import jax
 import numpy as np
+from helpers import energy_problem
 
 import jaxtraj as jt
 
@@ -44,16 +45,8 @@ def test_new_starts_args_and_names_reuse_the_compiled_solver():
     base = jt.problems.analytic.min_energy_double_integrator(1.0)
     ctrl = jt.controls.PiecewiseLinear(3)
     starts = np.asarray([ctrl.initial_guess(tf, 0.0, 0.0) for tf in (1.2, 0.9, 1.1)])
-    renamed = jt.Problem(
-        base.dynamics,
-        base.x0,
-        base.terminal,
-        base.constraint_names,
-        objective=base.objective,
-        args=base.args,
-        state_names=base.state_names,
-        control_names=base.control_names,
-        name="the same problem, renamed",
+    renamed = energy_problem(
+        state_names=base.state_names, control_names=base.control_names, name="the same problem, renamed"
     )
     first = _solve(base, ctrl, starts[0])
     with compilations() as names:

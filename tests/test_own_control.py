@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import energy_problem
 
 import jaxtraj as jt
 from jaxtraj._sensitivity import _affine_segment_basis
@@ -65,14 +66,7 @@ A0 = jnp.asarray([0.4, 0.55, 4.0, 0.5, -3.0])
 
 
 def _energy_problem(bound=None):
-    base = jt.problems.analytic.min_energy_double_integrator()
-    return jt.Problem(
-        base.dynamics,
-        base.x0,
-        base.terminal,
-        base.constraint_names,
-        objective=base.objective,
-        args=base.args,
+    return energy_problem(
         control_lower=None if bound is None else -bound,
         control_upper=bound,
         name="min-energy, own family",
