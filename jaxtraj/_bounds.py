@@ -107,6 +107,15 @@ def bound_row_names(problem, control) -> list[str]:
     return upper + lower
 
 
+def _free_knots(control) -> bool:
+    return control.time_layout not in ("final_time", "fixed")
+
+
+def knot_gap_names(control) -> list[str]:
+    """A name for each row of `knot_gap_rows` (`"segment k length"`), none for fixed knots."""
+    return [f"segment {k} length" for k in range(control.num_segments)] if _free_knots(control) else []
+
+
 def knot_gap_rows(control, a):
     """`(values (K,), Jacobian (K, np))` of the rows t_k - t_{k+1} <= 0 (segments of
     nonnegative length) of a family whose knots move with `a` (time layouts `"knots"`,
@@ -116,7 +125,7 @@ def knot_gap_rows(control, a):
     The Jacobian is taken at `a` itself rather than reused from the step's linearization at
     the previous point: an own family may map parameters to knots nonlinearly, and this is
     one forward-mode pass through `knots` (no integration)."""
-    if control.time_layout in ("final_time", "fixed"):
+    if not _free_knots(control):
         return None
 
     def gap(a):

@@ -5,7 +5,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._bounds import bound_row_names
+from ._bounds import bound_row_names, knot_gap_names
 from ._checks import check_inputs
 from ._kkt import inequality_rows, signed_multipliers, with_knot_gaps
 from ._problem import Problem
@@ -28,9 +28,10 @@ class KKTReport(eqx.Module):
       integration grid. Names: `constraint_names`, `path_names`, `terminal_inequality_names`,
       `"<control> upper bound at a[i]"` for a control-bound row, `"<state> lower bound
       (initial)"` for a free initial state, `"segment k length"` for free knots.
-    - `multipliers`: by the same names: lambda_i of an equality (dG*/db for E = c(a) - b),
-      nu >= 0 of an inequality (-dG*/db for g = c(a) - b <= 0); for a path constraint the sum
-      over the grid points (its total effect on the optimum).
+    - `multipliers`: by the same names: lambda_i of an equality, nu >= 0 of an inequality;
+      either is -dG*/db, the sensitivity of the optimal objective to the constraint's bound b
+      (E = c(a) - b, g = c(a) - b <= 0); for a path constraint the sum over the grid points
+      (its total effect on the optimum).
     - `max_violation`: the largest entry of `violation` (0 without constraints).
     - `status`: the evaluation's status (NONFINITE, SIMULATION_FAILED or SUCCESS).
     """
@@ -70,9 +71,7 @@ class KKTReport(eqx.Module):
 def _row_names(problem: Problem, control) -> tuple[list[str], list[str], list[str]]:
     """Names of the equality rows, of the path channels and of the other inequality rows
     (terminal, bounds, knot gaps) in `_kkt.inequality_rows` order."""
-    other = list(problem.terminal_inequality_names) + bound_row_names(problem, control)
-    if control.time_layout not in ("final_time", "fixed"):
-        other += [f"segment {k} length" for k in range(control.num_segments)]
+    other = list(problem.terminal_inequality_names) + bound_row_names(problem, control) + knot_gap_names(control)
     return list(problem.constraint_names), list(problem.path_names), other
 
 
