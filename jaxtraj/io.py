@@ -2,9 +2,9 @@
 dense trajectory, history). A folder is written whole or not at all (`staged_folder`: the
 files go into a temporary folder that is renamed into place), and every file is written
 atomically (temporary file + rename); where an existing folder is updated file by file, the
-summary, written last, carries the checksum of the arrays it belongs to. `load(dir)` gives the Solution and Trajectory back,
-parameters bit for bit, or a ValueError that names the damaged file. `folder_lock` keeps two
-runs out of one folder."""
+summary, written last, carries the checksum of the arrays it belongs to. `load(dir)` gives
+the Solution and Trajectory back, parameters bit for bit, or a ValueError that names the
+damaged file. `folder_lock` keeps two runs out of one folder."""
 
 import contextlib
 import errno
@@ -57,6 +57,13 @@ def folder_lock(folder, what="`out`"):
         os.close(fd)
 
 
+def _usual_mode(mode):
+    """`mode` less the process's umask: the permissions `open` / `mkdir` would give."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
+
+
 def atomic_write(path, write):
     """Call `write(file_object)` on a temporary file in the target folder, then rename."""
     folder = os.path.dirname(os.path.abspath(path))
@@ -66,9 +73,7 @@ def atomic_write(path, write):
             write(f)
             f.flush()
             os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
+        os.chmod(tmp, _usual_mode(0o666))  # mkstemp creates 0600
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -98,9 +103,7 @@ def staged_folder(folder, what="`folder`"):
     stage = tempfile.mkdtemp(dir=parent, prefix=f".{name}.partial-")
     try:
         yield stage
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(stage, 0o777 & ~umask)  # mkdtemp creates 0700; give the usual permissions
+        os.chmod(stage, _usual_mode(0o777))  # mkdtemp creates 0700
         try:
             os.rename(stage, folder)
             return
@@ -144,7 +147,8 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     at all (`staged_folder`).
 
     `summary.json` records the SHA-256 of `arrays.npz`, so `load` recognizes a pair from two
-    different saves (an interrupted update of a folder that holds other files too). The summary is strict JSON: a non-finite number is `null`, and its name is listed
+    different saves (an interrupted update of a folder that holds other files too). The
+    summary is strict JSON: a non-finite number is `null`, and its name is listed
     under `"nonfinite"`. `extra`: more JSON-able entries for the summary (e.g. the CLI's
     Monte Carlo results). Returns the summary (a dict).
 
