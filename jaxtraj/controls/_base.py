@@ -1,6 +1,7 @@
 """The control interface (`AbstractControl`) and the bounds helpers solvers use."""
 
 import abc
+import contextlib
 from typing import ClassVar
 
 import equinox as eqx
@@ -160,7 +161,7 @@ def _knots(control, a):
     return control.knots(a)
 
 
-_COMPILED = {}  # fn -> eqx.filter_jit(fn), for run_concretely
+_COMPILED = {}  # (fn, control structure, shapes) -> compiled program, for run_concretely
 
 
 def run_concretely(fn, control, *args) -> np.ndarray:
@@ -173,8 +174,17 @@ def run_concretely(fn, control, *args) -> np.ndarray:
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
         with jax.ensure_compile_time_eval():
             return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
-    jitted = _COMPILED.setdefault(fn, eqx.filter_jit(fn))
-    compiled = jitted.lower(control, *args).compile()
+    # the compiled program takes the control's arrays as inputs: it serves every control of
+    # the same structure and array shapes (e.g. another fixed final time)
+    arrays, structure = eqx.partition(control, eqx.is_array)
+    shapes = tuple((jnp.shape(x), jnp.result_type(x)) for x in (*jax.tree.leaves(arrays), *args))
+    key = (fn, structure, shapes)
+    try:
+        compiled = _COMPILED[key]
+    except (KeyError, TypeError):  # new, or an unhashable structure: compiled, not kept
+        compiled = eqx.filter_jit(fn).lower(control, *args).compile()
+        with contextlib.suppress(TypeError):
+            _COMPILED[key] = compiled
     with jax.ensure_compile_time_eval():
         return np.asarray(compiled(control, *args))
 
