@@ -62,8 +62,7 @@ def _parser():
         "--solver",
         help="default: the problem's own (earth-mars, min-energy, solar-sail: kalman; attitude and your own: sqp); "
         "kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
-        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region; "
-        "problems without path constraints)",
+        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region)",
     )
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")

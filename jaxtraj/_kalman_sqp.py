@@ -20,7 +20,8 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   exact Hessian is made positive definite by `convexify`.
 * Globalization (`globalization`, a module with its own settings and state): the merit line
   search `jt.LineSearch` (default; `jaxtraj._line_search`) or the composite-step trust region
-  `jt.TrustRegion` (`jaxtraj._trust_region`; exact Hessian, no path constraints). This module
+  `jt.TrustRegion` (`jaxtraj._trust_region`; exact Hessian; the composite step without
+  inequalities, the QP below in a box with them). This module
   holds what both share: the QP step by the filter, its multipliers, the second-order
   correction, the Hessians.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`);
@@ -141,7 +142,7 @@ class KalmanSQP(AbstractSolver):
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
     - `globalization`: `jt.LineSearch()` (default; the merit line search of
       `jaxtraj._line_search`, with its own settings) or `jt.TrustRegion()` (a composite-step
-      trust region, `hessian="exact"` and problems without path constraints only: see
+      trust region with the QP's step in a box where there are inequalities; `hessian="exact"`: see
       `jaxtraj._trust_region`; fewer iterations on every Earth-Mars case). The strings
       `"line-search"` and `"trust-region"` stand for their defaults.
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
@@ -211,13 +212,17 @@ class KalmanSQP(AbstractSolver):
     def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
 
+    def qp_hessian(self, W, H):
+        """The QP's positive definite B from an exact Hessian of the Lagrangian W (`convexify`)."""
+        return convexify(W, H, self.min_curvature)
+
     def exact_hessian(self, problem, control, a, simulator, lam):
         def grad_lagrangian(a):
             ev = self.restricted(problem, control, a, simulator)
             return lagrangian_gradient(ev, lam), ev
 
         hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
-        B = convexify(0.5 * (hess + hess.T), ev.H, self.min_curvature)
+        B = self.qp_hessian(0.5 * (hess + hess.T), ev.H)
         return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
 
     # ------------------------------------------------------------------ the QP step

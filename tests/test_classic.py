@@ -133,6 +133,27 @@ def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     assert max(objectives) - min(objectives) <= 1e-7 * (1.0 + abs(entry.reference))
 
 
+TRUST_REGION = jt.KalmanSQP(hessian="exact", globalization="trust-region")
+
+
+@pytest.mark.parametrize(
+    "name", ["bryson-denham", "min-time-double-integrator", "moon-lander", "singular-arc", "capped-terminal", "goddard"]
+)
+def test_trust_region_reaches_the_reference_with_inequalities(name):
+    """The trust region on the gallery's problems with inequalities (a state path constraint
+    from a start that violates it, control bounds with bang-bang and singular arcs, a terminal
+    inequality), from the naive start and its round-off perturbations: SUCCESS at the
+    reference every time (measured iterations 6, 9, 8, 15, 1, 69 against the line search's 8,
+    13, 8, 26, 2, 41)."""
+    entry = CLASSIC.get(name)
+    for start in perturbed_starts(entry.start, absolute=True):
+        sol = jt.solve(entry.problem, entry.control, start, TRUST_REGION, simulator=SIM, max_steps=500)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        gap = float(sol.objective) - entry.reference
+        assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
+        assert float(sol.max_constraint_error) <= TRUST_REGION.ctol
+
+
 @pytest.mark.parametrize("name", ["lq", "capped-terminal", "goddard"])
 def test_ipopt_reaches_the_reference(name):
     """Problems without terminal equality constraints, and Goddard (SLSQP's failure)."""

@@ -470,14 +470,9 @@ def test_trust_region_min_energy_analytic_optimum(simulator):
     np.testing.assert_allclose(sol.params[:-1], 6.0 - 12.0 * np.linspace(0, 1, 4), atol=1e-7)
 
 
-def test_trust_region_refuses_path_constraints():
-    prob = jt.problems.analytic.speed_limited_double_integrator(1.2)
-    ctrl = jt.controls.PiecewiseLinear(4)
-    with pytest.raises(ValueError, match="inequality constraints"):
-        jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), TRUST_REGION, simulator=jt.RK4(4))
-
-
-@pytest.mark.parametrize("segments, hessian", [(4, "bfgs"), (4, "exact"), (8, "bfgs")])
+@pytest.mark.parametrize(
+    "segments, hessian", [(4, "bfgs"), (4, "exact"), (8, "bfgs"), (4, "trust-region"), (8, "trust-region")]
+)
 def test_path_constraint_analytic_optimum(segments, hessian):
     """Speed limit x2 <= 1.2 on the min-energy double integrator: energy 8 V^3 / (9 (V - 1))
     = 7.68, contained exactly in PiecewiseLinear(4) and (8); the constraint is active on the
@@ -488,7 +483,7 @@ def test_path_constraint_analytic_optimum(segments, hessian):
         prob,
         ctrl,
         ctrl.initial_guess(1.2, 0.0, 0.0),
-        jt.KalmanSQP(hessian=hessian),
+        TRUST_REGION if hessian == "trust-region" else jt.KalmanSQP(hessian=hessian),
         simulator=jt.RK4(segments),
         max_steps=300,
     )

@@ -112,11 +112,6 @@ def test_declared_affinity_matches_a_probe():
 )
 def test_every_solver_reaches_the_analytic_optimum(solver):
     prob = _energy_problem(bound=10.0)  # declared, inactive at the optimum (|u| <= 6)
-    if isinstance(solver, jt.KalmanSQP) and isinstance(solver.globalization, jt.TrustRegion):
-        # the trust region takes no inequality rows: it refuses the bounds, and solves without
-        with pytest.raises(ValueError, match="control bounds"):
-            jt.solve(prob, CTRL, A0, solver, simulator=SIM, max_steps=3000)
-        prob = _energy_problem()
     sol = jt.solve(prob, CTRL, A0, solver, simulator=SIM, max_steps=3000)
     assert jt.status_name(sol.status) == "SUCCESS"
     _energy_on_line(sol)
