@@ -73,6 +73,33 @@ def lagrangian_gradient(ev, lam):
     return ev.G_a + constraint_rows(ev).T @ lam
 
 
+def merit_value(G, E, C, lam, mu):
+    """The augmented-Lagrangian merit of both KalmanSQP globalizations: G + lambda^T E + mu/2
+    |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term psi = (max(0, nu + mu C)^2 -
+    nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0)."""
+    m = E.shape[0]
+    value = G + lam[:m] @ E + 0.5 * mu * (E @ E)
+    if C is not None:
+        nu = lam[m:]
+        on = nu + mu * C > 0
+        off = jnp.where(nu > 0, -(nu**2) / (2.0 * jnp.where(mu > 0, mu, 1.0)), 0.0)  # nu > 0 here implies mu > 0
+        value = value + jnp.sum(jnp.where(on, nu * C + 0.5 * mu * C**2, off))
+    return value
+
+
+def merit(ev, lam, mu):
+    """`merit_value` at an `Evaluation` (its inequality rows as C)."""
+    rows = inequality_rows(ev)
+    return merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
+
+
+def is_feasible(ev, ctol):
+    """max |E| <= `ctol` and every inequality row <= `ctol` (SUCCESS's feasibility)."""
+    rows = inequality_rows(ev)
+    ok = jnp.max(jnp.abs(ev.E), initial=0.0) <= ctol
+    return ok if rows is None else ok & (jnp.max(rows[0]) <= ctol)
+
+
 def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
     """`(converged, stalled)` of an SQP iteration: converged when `feasible` and the projected
     gradient `pg` <= `gtol` (1 + |G|), or, once `no_progress` (round-off leaves no measurable

@@ -38,10 +38,13 @@ from jax import lax
 from ._checks import check_settings
 from ._kkt import (
     inequality_rows,
+    is_feasible,
     kkt_outcome,
     lagrangian_gradient,
     least_squares_multipliers,
     locally_infeasible,
+    merit,
+    merit_value,
     stationarity,
     with_knot_gaps,
 )
@@ -73,29 +76,6 @@ def bfgs_update(B, s, y, damping=0.2):
 def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
     """BFGS update with the change of the Lagrangian's gradient (multipliers `lam`)."""
     return bfgs_update(B, s, lagrangian_gradient(cand, lam) - lagrangian_gradient(ev, lam))
-
-
-def _merit_value(G, E, C, lam, mu):
-    """G + lambda^T E + mu/2 |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term
-    psi = (max(0, nu + mu C)^2 - nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0)."""
-    m = E.shape[0]
-    value = G + lam[:m] @ E + 0.5 * mu * (E @ E)
-    if C is not None:
-        nu = lam[m:]
-        on = nu + mu * C > 0
-        off = jnp.where(nu > 0, -(nu**2) / (2.0 * jnp.where(mu > 0, mu, 1.0)), 0.0)  # nu > 0 here implies mu > 0
-        value = value + jnp.sum(jnp.where(on, nu * C + 0.5 * mu * C**2, off))
-    return value
-
-
-def _merit(ev: Evaluation, lam, mu):
-    rows = inequality_rows(ev)
-    return _merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
-
-
-def _max_inequality(ev: Evaluation):
-    rows = inequality_rows(ev)
-    return jnp.asarray(-jnp.inf) if rows is None else jnp.max(rows[0])
 
 
 class LineSearchState(eqx.Module):
@@ -164,7 +144,7 @@ class LineSearch(eqx.Module):
             # d/dalpha of the merit of the linearized constraints along (d, dlam)
             def phi(alpha):
                 C_alpha = None if C is None else C + alpha * Cd
-                return _merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu)
+                return merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu)
 
             return jax.jvp(phi, (jnp.zeros_like(mu),), (jnp.ones_like(mu),))[1]
 
@@ -185,7 +165,7 @@ class LineSearch(eqx.Module):
             return jnp.where((value > target) & (c1 < 0) & infeasible, jnp.maximum(2.0 * needed, mu), mu)
 
         mu = lax.fori_loop(0, 1 if rows is None else 4, raise_mu, mu)
-        return dlam, mu, _merit(ev, lam, mu), slope(mu)
+        return dlam, mu, merit(ev, lam, mu), slope(mu)
 
     def init(self, sqp, problem, control, a0, simulator, max_steps):
         lam = least_squares_multipliers(sqp.restricted(problem, control, a0, simulator), sqp.path_active)
@@ -268,7 +248,7 @@ class LineSearch(eqx.Module):
         else:
             cand, B_exact = sqp.evaluate(problem, control, a + step_taken, simulator, lam_c)
             early = True
-        phi = _merit(cand, lam_c, mu)
+        phi = merit(cand, lam_c, mu)
         finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
         descent = dphi0 < 0
         # Armijo, relaxed by the merit's round-off (10 eps |phi|): near the solution the
@@ -300,7 +280,7 @@ class LineSearch(eqx.Module):
         maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
         pg = stationarity(kkt_ev, sqp.path_active)
-        feasible = (maxE <= sqp.ctol) & (_max_inequality(new_ev) <= sqp.ctol)
+        feasible = is_feasible(new_ev, sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
         # within the merit's round-off without halving the projected gradient.

@@ -40,7 +40,7 @@ G + lambda^T E + mu/2 |E|^2 (+ the PHR terms of the inequality rows, as the line
 merit; the multipliers of the current point); the predicted decrease is that of the merit's
 model (the Lagrangian's quadratic model with curvature W, or the QP's B, and the linearized
 constraints); mu raised so that the predicted decrease is at least 0.3 mu x the linearized
-decrease of |E|^2/2 + |max(C, 0)|^2/2, never lowered. A candidate
+decrease of |E|^2/2 + |max(C, 0)|^2/2, never lowered (but not carried past `mu_max`). A candidate
 with ratio >= `eta` is accepted; a rejected one is first retried with a second-order
 correction (the minimum-norm step onto H d_c = -E(a + d), by the same filter; with
 inequalities the line search's `KalmanSQP.correction`); the radius
@@ -67,15 +67,17 @@ from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
     inequality_rows,
+    is_feasible,
     kkt_outcome,
     lagrangian_gradient,
     least_squares_multipliers,
     locally_infeasible,
+    merit,
+    merit_value,
     projected_gradient,
     stationarity,
     with_knot_gaps,
 )
-from ._line_search import _merit, _merit_value
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._simulate import RK4, final_state
 from ._solution import History
@@ -224,14 +226,7 @@ def _model(ev: Evaluation, lam, mu, d, B):
     (curvature B) and the linearized constraints in the merit's terms."""
     rows = inequality_rows(ev)
     C = None if rows is None else rows[0] + rows[1] @ d
-    return _merit_value(ev.G + ev.G_a @ d + 0.5 * d @ B @ d, ev.E + ev.H @ d, C, lam, mu)
-
-
-def _feasible(ev: Evaluation, ctol):
-    """max |E| <= ctol and every inequality row <= ctol."""
-    rows = inequality_rows(ev)
-    ok = jnp.max(jnp.abs(ev.E), initial=0.0) <= ctol
-    return ok if rows is None else ok & (jnp.max(rows[0]) <= ctol)
+    return merit_value(ev.G + ev.G_a @ d + 0.5 * d @ B @ d, ev.E + ev.H @ d, C, lam, mu)
 
 
 def _violation(E, C):
@@ -246,7 +241,7 @@ def _penalty(ev: Evaluation, lam, mu, d, B):
     rows = inequality_rows(ev)
     C, C_d = (None, None) if rows is None else (rows[0], rows[0] + rows[1] @ d)
     linear = _violation(ev.E, C) - _violation(ev.E + ev.H @ d, C_d)
-    excess = lambda mu: _merit(ev, lam, mu) - _model(ev, lam, mu, d, B) - 0.3 * mu * linear
+    excess = lambda mu: merit(ev, lam, mu) - _model(ev, lam, mu, d, B) - 0.3 * mu * linear
 
     def newton(_, mu):
         f, df = jax.jvp(excess, (mu,), (jnp.ones_like(mu),))
@@ -314,14 +309,14 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     mu = jnp.where(fresh, mu_new, state.mu)
     d = jnp.where(fresh, d_new, state.d)
     lam_qp = jnp.where(fresh, lam_qp, state.lam_qp)
-    pred = jnp.where(fresh, _merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d_new, B), state.pred)
-    phi0 = jnp.where(fresh, _merit(ev, lam, mu_new), state.phi0)
+    pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d_new, B), state.pred)
+    phi0 = jnp.where(fresh, merit(ev, lam, mu_new), state.phi0)
 
     # one integration: the candidate
     total = d + jnp.where(fresh, 0.0, state.d_soc)
     cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
     lam_c = lam_qp if with_rows else _multipliers(cand, sqp.path_active)
-    phi = _merit(cand, lam, mu)
+    phi = merit(cand, lam, mu)
     new_knots = control.knots(a + total)
     # knots in order, up to the round-off a collapsed segment (gap 0, held by its row) leaves
     ordered = jnp.all(jnp.diff(new_knots) >= -1e-12 * jnp.sum(jnp.abs(jnp.diff(knots))))
@@ -351,7 +346,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     new = lambda c, o: jax.tree.map(lambda x, y: jnp.where(accept, x, y), c, o)
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, state.lam))
     maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
-    feasible = _feasible(new_ev, sqp.ctol)
+    feasible = is_feasible(new_ev, sqp.ctol)
     if with_rows:
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
         pg = stationarity(kkt_ev, sqp.path_active)
@@ -362,7 +357,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # a feasible point, a fresh step inside the radius (the model's own minimizer) predicts a
     # merit decrease below the merit's round-off. (Not at an infeasible one: there a step
     # that lowers a violation of 1e-9 still counts, though the merit cannot resolve it.)
-    flat = fresh & (size(d) < 0.8 * state.radius) & (pred <= slack) & _feasible(ev, sqp.ctol)
+    flat = fresh & (size(d) < 0.8 * state.radius) & (pred <= slack) & is_feasible(ev, sqp.ctol)
     no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)) | flat
     converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
     infeasible = stalled & ~feasible

@@ -12,8 +12,8 @@ from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
 from jaxtraj._kalman_sqp import convexify
-from jaxtraj._kkt import kkt_outcome, lagrangian_gradient
-from jaxtraj._line_search import _merit, bfgs_update
+from jaxtraj._kkt import kkt_outcome, lagrangian_gradient, merit
+from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
 from jaxtraj._trust_region import lagrangian_hessian, min_norm_step, subproblem, trust_region_step
 from jaxtraj.baselines import solve_slsqp
@@ -144,7 +144,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
     dlam, mu, phi0, slope = solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp)
     assert float(mu) > 0
-    phi = lambda t: _merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)
+    phi = lambda t: merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)
     h = 1e-5
     fd = (phi(h) - phi(-h)) / (2 * h)
     assert abs(float(phi(0.0)) - float(phi0)) < 1e-14
