@@ -146,14 +146,18 @@ class AbstractControl(eqx.Module):
         return run_concretely(_knots, self, np.asarray(a, np.float64))
 
     def _check_increasing(self, knots: np.ndarray, what: str) -> None:
+        """Knots in order in [0, tf]. Equal neighbours (a collapsed segment, as a solver leaves
+        one at the bound t_k <= t_{k+1}, like a SaturatedSpline duration at 0) are allowed: the
+        integration runs on normalized segment time and the control's evaluation guards h = 0,
+        so a solver's own result can be simulated and checked."""
         d = np.diff(knots)
-        bad = np.flatnonzero(d <= 0)
+        bad = np.flatnonzero(d < 0)
         if bad.size:
             i = int(bad[0])
             raise ValueError(
-                f"`a`: {what} must be strictly increasing in (0, tf] with tf = {knots[-1]:g}; "
-                f"expected t_{i} < t_{i + 1}, got t_{i} = {knots[i]:g}, t_{i + 1} = {knots[i + 1]:g} "
-                f"(all knots: {np.array2string(knots, precision=6)})."
+                f"`a`: {what} must be increasing in [0, tf] with tf = {knots[-1]:g} (equal neighbours, "
+                f"a collapsed segment, allowed); expected t_{i} <= t_{i + 1}, got t_{i} = {knots[i]:g}, "
+                f"t_{i + 1} = {knots[i + 1]:g} (all knots: {np.array2string(knots, precision=6)})."
             )
 
 
