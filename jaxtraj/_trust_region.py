@@ -351,6 +351,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
         pg = stationarity(kkt_ev, sqp.path_active)
     else:
+        kkt_ev = new_ev
         pg = projected_gradient(new_ev.G_a, new_ev.H)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
@@ -360,13 +361,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     flat = fresh & (size(d) < 0.8 * state.radius) & (pred <= slack) & is_feasible(ev, sqp.ctol)
     no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)) | flat
     converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
-    infeasible = stalled & ~feasible
-    if with_rows:  # tested only there (least squares over every row)
-        infeasible = lax.cond(
-            infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
-        )
-    else:
-        infeasible = infeasible & locally_infeasible(new_ev, sqp.path_active, sqp.acceptable_gtol)
+    infeasible = stalled & ~feasible  # tested only there (least squares over every row)
+    infeasible = lax.cond(
+        infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
+    )
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
     # first-order integration alone (in a single solve; under vmap both branches run).
     hessian = accept & ~converged & ~stalled

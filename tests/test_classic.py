@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
-from helpers import perturbed_starts
+from helpers import TRUST_REGION, perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
@@ -131,9 +131,6 @@ def test_default_solver_reaches_the_reference_from_the_naive_start(name):
         assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
         objectives.append(float(sol.objective))
     assert max(objectives) - min(objectives) <= 1e-7 * (1.0 + abs(entry.reference))
-
-
-TRUST_REGION = jt.KalmanSQP(hessian="exact", globalization="trust-region")
 
 
 @pytest.mark.parametrize(

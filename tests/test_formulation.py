@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
-from helpers import perturbed_starts
+from helpers import TRUST_REGION, perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_slsqp
@@ -304,9 +304,6 @@ def terminal_inequality_problem(cap):
         terminal_inequality_names=("x(1) cap",),
         final_time=1.0,
     )
-
-
-TRUST_REGION = jt.KalmanSQP(hessian="exact", globalization="trust-region")
 
 
 @pytest.mark.parametrize("cap", [1.0, 3.0])

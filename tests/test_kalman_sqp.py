@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROUNDOFF_EPS, perturbed_starts
+from helpers import ROUNDOFF_EPS, TRUST_REGION, perturbed_starts
 from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
@@ -169,9 +169,6 @@ def test_seven_cases_to_kkt_tolerance(case):
     assert np.all(np.abs(np.asarray(sols.tf) - SLSQP_OPTIMA[case]) < 2e-8)
     if case in (4, 5):  # fewer iterations than the thesis (which stopped at |E| ~ 1e-4)
         assert np.all(np.asarray(sols.iterations) < jt.problems.earth_mars.PUBLISHED[case][1])
-
-
-TRUST_REGION = jt.KalmanSQP(hessian="exact", globalization="trust-region")
 
 
 @pytest.mark.parametrize("case", range(1, 8))
