@@ -1,8 +1,9 @@
 """The loop contract every solver implements, and the one driver that runs it.
 
-A solver is a state machine over an array-only state: `init` evaluates the start, `step`
-runs in a `lax.while_loop` until `state.done` or `max_steps` steps, `postprocess` turns
-the final state into a `Solution`. `run` is jit-compiled once per (problem, control,
+A solver is a state machine over an array-only state: `init` builds the initial state (it
+evaluates the start, or leaves that to the first `step`, so that the compiled program holds
+each evaluation kernel once), `step` runs in a `lax.while_loop` until `state.done` or
+`max_steps` steps, `postprocess` turns the final state into a `Solution`. `run` is jit-compiled once per (problem, control,
 solver configuration, simulator, max_steps) and vmap-able over starting vectors; the batch
 lane queue (`_batch`) drives the same `init` / `step` per lane. This module imports no
 solver (the default one is chosen by `jt.solve`)."""
@@ -30,7 +31,7 @@ class AbstractSolver(eqx.Module):
 
     @abc.abstractmethod
     def init(self, problem, control, a0, simulator, max_steps: int):
-        """Initial state (evaluates a0)."""
+        """Initial state (evaluates a0, or marks it as the first step's candidate)."""
 
     @abc.abstractmethod
     def step(self, problem, control, simulator, state):

@@ -62,6 +62,7 @@ Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 from ._bounds import require_rows
 from ._checks import check_settings
@@ -70,6 +71,7 @@ from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
     inequality_rows,
     lagrangian_gradient,
+    least_squares_multipliers,
     multipliers,
     stationarity,
     with_knot_gaps,
@@ -202,13 +204,6 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ evaluations
 
-    def evaluate(self, problem, control, a, simulator, lam):
-        """The restricted problem at `a`, and (hessian="exact") the convexified Hessian of
-        the Lagrangian with multipliers `lam`, from one integration."""
-        if self.hessian == "bfgs":
-            return self.restricted(problem, control, a, simulator), None
-        return self.exact_hessian(problem, control, a, simulator, lam)
-
     def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
 
@@ -217,13 +212,29 @@ class KalmanSQP(AbstractSolver):
         return convexify(W, H, self.min_curvature)
 
     def exact_hessian(self, problem, control, a, simulator, lam):
+        """`(ev, B, lam)`: the evaluation at `a` and the convexified Hessian of the Lagrangian
+        with multipliers `lam`, or with `lam(ev)` where `lam` is a function (multipliers
+        that need the evaluation they weigh, e.g. at the start: held fixed in the
+        derivative, so one integration gives both)."""
+
         def grad_lagrangian(a):
             ev = self.restricted(problem, control, a, simulator)
-            return lagrangian_gradient(ev, lam), ev
+            weights = lax.stop_gradient(lam(ev)) if callable(lam) else lam
+            return lagrangian_gradient(ev, weights), (ev, weights)
 
-        hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
+        hess, (ev, weights) = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
         B = self.qp_hessian(0.5 * (hess + hess.T), ev.H)
-        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
+        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0])), weights
+
+    def unevaluated(self, problem, control, a0, simulator):
+        """Zeros shaped as the evaluation at `a0` and its multipliers, for an initial state
+        whose start the first `step` evaluates (no integration: `jax.eval_shape`)."""
+
+        def shapes(a):
+            ev = self.restricted(problem, control, a, simulator)
+            return ev, least_squares_multipliers(ev, self.path_active)
+
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(shapes, a0))
 
     # ------------------------------------------------------------------ the QP step
 

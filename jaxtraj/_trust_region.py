@@ -48,7 +48,8 @@ doubles after a good step on the boundary (ratio > 0.75), halves to |d| / 2 afte
 (ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate with
 first-order sensitivities; an accepted one that does not end the solve is integrated once more
 for the Hessian of the Lagrangian with its multipliers (`lagrangian_hessian`; both count in
-`integrations`). No measurable progress (the solver's termination rule then decides between
+`integrations`). The first step's candidate is the start (`init` integrates nothing, so each
+evaluation kernel is compiled once). No measurable progress (the solver's termination rule then decides between
 SUCCESS and STALLED, or CONSTRAINT_STATIONARY at a stationary point of the violation): a
 negligible radius or step, or, at a feasible point, a step inside the radius (the model's own
 minimizer) whose predicted decrease is below the merit's round-off.
@@ -255,30 +256,29 @@ def _penalty(ev: Evaluation, lam, mu, d, B):
 
 
 def _init(tr, sqp, problem, control, a0, simulator, max_steps):
-    ev = evaluate_restricted(problem, control, a0, simulator, "forward")
-    lam = _multipliers(ev, sqp.path_active)
-    W = lagrangian_hessian(problem, control, a0, simulator, lam)
-    ok0 = ev.status == Status.SUCCESS
+    # Nothing is integrated here: the first `_step` evaluates the start as its candidate
+    # (then its Hessian), so the compiled program holds each evaluation kernel once (issue 21).
+    ev, lam = sqp.unevaluated(problem, control, a0, simulator)
     f = jnp.float64
     zero = jnp.zeros_like(a0)
     return TRState(
         a=a0,
         ev=ev,
         lam=lam,
-        W=W,
+        W=jnp.zeros((a0.shape[0], a0.shape[0]), f),
         radius=jnp.asarray(tr.radius, f),
         mu=jnp.asarray(0.0, f),
         d=zero,
         d_soc=zero,
         lam_qp=lam,
-        soc=jnp.array(False),
+        soc=jnp.array(True),  # no new step before the start is evaluated: its candidate is a0
         pred=jnp.asarray(0.0, f),
         phi0=jnp.asarray(0.0, f),
         num_iterations=jnp.array(0, jnp.int32),
-        num_integrations=jnp.array(2, jnp.int32),
+        num_integrations=jnp.array(0, jnp.int32),
         num_steps=jnp.array(0, jnp.int32),
-        done=~ok0,
-        status=Status.where(ok0, Status.SUCCESS, ev.status),
+        done=jnp.array(False),
+        status=Status.SUCCESS,
         history=History.empty(max_steps, ("radius", "kind")),
     )
 
@@ -312,10 +312,15 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d_new, B), state.pred)
     phi0 = jnp.where(fresh, merit(ev, lam, mu_new), state.phi0)
 
-    # one integration: the candidate
+    # one integration: the candidate (the first step's is the start)
+    first = state.num_steps == 0
     total = d + jnp.where(fresh, 0.0, state.d_soc)
     cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
-    lam_c = lam_qp if with_rows else _multipliers(cand, sqp.path_active)
+    lam_c = (
+        jnp.where(first, _multipliers(cand, sqp.path_active), lam_qp)
+        if with_rows
+        else _multipliers(cand, sqp.path_active)
+    )
     phi = merit(cand, lam, mu)
     new_knots = control.knots(a + total)
     # knots in order, up to the round-off a collapsed segment (gap 0, held by its row) leaves
@@ -323,7 +328,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi) & ordered
     slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))  # the merit's round-off
     ared = phi0 - phi
-    accept = finite & (ared + slack >= tr.eta * pred)
+    accept = finite & (first | (ared + slack >= tr.eta * pred))
     ratio = ared / jnp.maximum(pred, 1e-300)
 
     # rejected full step: retry once with the second-order correction
@@ -334,13 +339,13 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         d_soc, _ = min_norm_step(ev.H, -cand.E)
     d_norm = jnp.where(accept, size(total), size(d))
     radius = jnp.where(
-        accept,
+        accept & ~first,
         jnp.where(
             (ratio > 0.75) & (d_norm >= 0.8 * state.radius),
             jnp.maximum(state.radius, 2.0 * d_norm),
             jnp.where(ratio < 0.25, 0.5 * d_norm, state.radius),
         ),
-        jnp.where(try_soc, state.radius, 0.25 * d_norm),
+        jnp.where(try_soc | first, state.radius, 0.25 * d_norm),
     )
 
     new = lambda c, o: jax.tree.map(lambda x, y: jnp.where(accept, x, y), c, o)
@@ -359,8 +364,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # merit decrease below the merit's round-off. (Not at an infeasible one: there a step
     # that lowers a violation of 1e-9 still counts, though the merit cannot resolve it.)
     flat = fresh & (size(d) < 0.8 * state.radius) & (pred <= slack) & is_feasible(ev, sqp.ctol)
-    no_progress = ~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)) | flat
+    no_progress = ~first & (~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)) | flat)
     converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
+    bad_start = first & ~accept
     infeasible = stalled & ~feasible  # tested only there (least squares over every row)
     infeasible = lax.cond(
         infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
@@ -381,7 +387,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         step_norm=jnp.linalg.norm(total),
         accepted=accept,
         constraint_tolerance=sqp.ctol,
-        details={"radius": state.radius, "kind": jnp.where(fresh, 1, 3)},
+        details={"radius": state.radius, "kind": jnp.where(first, 0, jnp.where(fresh, 1, 3))},
     )
     return TRState(
         a=new_a,
@@ -396,12 +402,16 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         soc=try_soc,
         pred=pred,
         phi0=phi0,
-        num_iterations=state.num_iterations + accept.astype(jnp.int32),
+        num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
         num_integrations=state.num_integrations + 1 + hessian.astype(jnp.int32),
         num_steps=i + 1,
-        done=converged | stalled,
+        done=converged | stalled | bad_start,
         status=Status.where(
-            converged, Status.SUCCESS, Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED)
+            bad_start,
+            Status.where(cand.status == Status.SUCCESS, Status.NONFINITE, cand.status),
+            Status.where(
+                converged, Status.SUCCESS, Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED)
+            ),
         ),
         history=history,
     )
