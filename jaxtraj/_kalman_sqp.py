@@ -62,7 +62,6 @@ Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import lax
 
 from ._bounds import require_rows
 from ._checks import check_settings
@@ -204,6 +203,13 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ evaluations
 
+    def evaluate(self, problem, control, a, simulator, lam):
+        """The restricted problem at `a`, and (hessian="exact") the convexified Hessian of
+        the Lagrangian with multipliers `lam`, from one integration."""
+        if self.hessian == "bfgs":
+            return self.restricted(problem, control, a, simulator), None
+        return self.exact_hessian(problem, control, a, simulator, lam)
+
     def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
 
@@ -212,23 +218,18 @@ class KalmanSQP(AbstractSolver):
         return convexify(W, H, self.min_curvature)
 
     def exact_hessian(self, problem, control, a, simulator, lam):
-        """`(ev, B, lam)`: the evaluation at `a` and the convexified Hessian of the Lagrangian
-        with multipliers `lam`, or with `lam(ev)` where `lam` is a function (multipliers
-        that need the evaluation they weigh, e.g. at the start: held fixed in the
-        derivative, so one integration gives both)."""
-
         def grad_lagrangian(a):
             ev = self.restricted(problem, control, a, simulator)
-            weights = lax.stop_gradient(lam(ev)) if callable(lam) else lam
-            return lagrangian_gradient(ev, weights), (ev, weights)
+            return lagrangian_gradient(ev, lam), ev
 
-        hess, (ev, weights) = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
+        hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
         B = self.qp_hessian(0.5 * (hess + hess.T), ev.H)
-        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0])), weights
+        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
 
     def unevaluated(self, problem, control, a0, simulator):
-        """Zeros shaped as the evaluation at `a0` and its multipliers, for an initial state
-        whose start the first `step` evaluates (no integration: `jax.eval_shape`)."""
+        """Zeros shaped as the evaluation at `a0` and its least-squares multipliers, for an
+        initial state whose start the first `step` evaluates (traced by `jax.eval_shape`,
+        neither compiled nor integrated)."""
 
         def shapes(a):
             ev = self.restricted(problem, control, a, simulator)

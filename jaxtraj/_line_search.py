@@ -169,7 +169,7 @@ class LineSearch(eqx.Module):
 
     def init(self, sqp, problem, control, a0, simulator, max_steps):
         lam = least_squares_multipliers(sqp.restricted(problem, control, a0, simulator), sqp.path_active)
-        ev, B, _ = sqp.exact_hessian(problem, control, a0, simulator, lam)
+        ev, B = sqp.exact_hessian(problem, control, a0, simulator, lam)
         f = jnp.float64
         hist = History.empty(max_steps, ("alpha", "kind"))
         ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
@@ -242,15 +242,11 @@ class LineSearch(eqx.Module):
             early = state.num_iterations < sqp.exact_iterations
             cand, B_exact = lax.cond(
                 early,
-                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, lam_c)[:2],
+                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, lam_c),
                 lambda: (sqp.restricted(problem, control, a + step_taken, simulator), B),
             )
         else:
-            cand, B_exact = (
-                (sqp.restricted(problem, control, a + step_taken, simulator), None)
-                if sqp.hessian == "bfgs"
-                else sqp.exact_hessian(problem, control, a + step_taken, simulator, lam_c)[:2]
-            )
+            cand, B_exact = sqp.evaluate(problem, control, a + step_taken, simulator, lam_c)
             early = True
         phi = merit(cand, lam_c, mu)
         finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)

@@ -316,11 +316,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     first = state.num_steps == 0
     total = d + jnp.where(fresh, 0.0, state.d_soc)
     cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
-    lam_c = (
-        jnp.where(first, _multipliers(cand, sqp.path_active), lam_qp)
-        if with_rows
-        else _multipliers(cand, sqp.path_active)
-    )
+    # the candidate's multipliers: the QP's with inequalities (least squares at the start)
+    lam_c = _multipliers(cand, sqp.path_active)
+    if with_rows:
+        lam_c = lax.cond(first, lambda: lam_c, lambda: lam_qp)
     phi = merit(cand, lam, mu)
     new_knots = control.knots(a + total)
     # knots in order, up to the round-off a collapsed segment (gap 0, held by its row) leaves
