@@ -62,6 +62,7 @@ Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 from ._bounds import require_rows
 from ._checks import check_settings
@@ -203,13 +204,6 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ evaluations
 
-    def evaluate(self, problem, control, a, simulator, lam):
-        """The restricted problem at `a`, and (hessian="exact") the convexified Hessian of
-        the Lagrangian with multipliers `lam`, from one integration."""
-        if self.hessian == "bfgs":
-            return self.restricted(problem, control, a, simulator), None
-        return self.exact_hessian(problem, control, a, simulator, lam)
-
     def restricted(self, problem, control, a, simulator):
         return evaluate_restricted(problem, control, a, simulator, self.method)
 
@@ -218,13 +212,20 @@ class KalmanSQP(AbstractSolver):
         return convexify(W, H, self.min_curvature)
 
     def exact_hessian(self, problem, control, a, simulator, lam):
+        """`(ev, B, weights)`: the evaluation at `a`, the convexified Hessian of the
+        Lagrangian with multipliers `lam`, and those multipliers. `lam` is an array or a
+        function of the evaluation (multipliers that need the point they weigh, as the
+        start's least-squares ones: held fixed in the derivative, so that one integration
+        gives both)."""
+
         def grad_lagrangian(a):
             ev = self.restricted(problem, control, a, simulator)
-            return lagrangian_gradient(ev, lam), ev
+            weights = lax.stop_gradient(lam(ev)) if callable(lam) else lam
+            return lagrangian_gradient(ev, weights), (ev, weights)
 
-        hess, ev = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
+        hess, (ev, weights) = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
         B = self.qp_hessian(0.5 * (hess + hess.T), ev.H)
-        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
+        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0])), weights
 
     def unevaluated(self, problem, control, a0, simulator):
         """Zeros shaped as the evaluation at `a0` and its least-squares multipliers, for an
@@ -297,7 +298,7 @@ class KalmanSQP(AbstractSolver):
                 B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
                 return step_on(*self._equality_step(prior, P, ev, r_soft), B_soft, ev.H[:0])[:3]
 
-            d, P1, active = jax.lax.cond(pinned_violated | (hard[3] > self.ctol), elastic_step, lambda: hard[:3])
+            d, P1, active = lax.cond(pinned_violated | (hard[3] > self.ctol), elastic_step, lambda: hard[:3])
             active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t, collapse=self.path_active)
         # multipliers of [E; active C] from stationarity (nu >= 0, zero off the active set)

@@ -26,8 +26,11 @@ near the solution, so the superlinear rate is not lost to the Maratos effect).
   projected gradient. The solver's termination rule (`jaxtraj._kkt.kkt_outcome`) then decides
   between SUCCESS and STALLED.
 
-One `step` = one candidate integration, branch-free, so a batch under `vmap` runs the same
-work for every start.
+One `step` = one candidate integration; the first step's candidate is the start itself
+(evaluated with the exact Hessian and its least-squares multipliers; `init` integrates
+nothing, so the evaluation kernels are compiled once, in the step). The direction is a loop
+of at most two rounds (B, then the scaled identity), so that its QP is compiled once; every
+other choice is a select, so a batch under `vmap` runs the same work for every start.
 """
 
 import equinox as eqx
@@ -168,24 +171,24 @@ class LineSearch(eqx.Module):
         return dlam, mu, merit(ev, lam, mu), slope(mu)
 
     def init(self, sqp, problem, control, a0, simulator, max_steps):
-        lam = least_squares_multipliers(sqp.restricted(problem, control, a0, simulator), sqp.path_active)
-        ev, B = sqp.exact_hessian(problem, control, a0, simulator, lam)
+        # Nothing is integrated here: the first `step` evaluates the start as its candidate
+        # (with the exact Hessian and least-squares multipliers), so the compiled program
+        # holds the evaluation kernels once, in the step (issue 21).
+        ev, lam = sqp.unevaluated(problem, control, a0, simulator)
         f = jnp.float64
-        hist = History.empty(max_steps, ("alpha", "kind"))
-        ok0 = (ev.status == Status.SUCCESS) & jnp.all(jnp.isfinite(lam))
         zero = jnp.zeros_like(a0)
         return LineSearchState(
             a=a0,
             ev=ev,
-            lam=jnp.where(jnp.isfinite(lam), lam, 0.0),
-            B=B,
+            lam=lam,
+            B=jnp.eye(a0.shape[0], dtype=f),
             mu=jnp.asarray(0.0, f),
             d=zero,
             dlam=jnp.zeros_like(lam),
             alpha=jnp.asarray(1.0, f),
             phi0=jnp.asarray(0.0, f),
             dphi0=jnp.asarray(0.0, f),
-            searching=jnp.array(False),
+            searching=jnp.array(True),  # no direction before the start is evaluated
             soc=jnp.array(False),
             d_soc=zero,
             alpha_bt=jnp.asarray(1.0, f),
@@ -193,18 +196,15 @@ class LineSearch(eqx.Module):
             num_flat=jnp.array(0, jnp.int32),
             best_gradient=jnp.asarray(jnp.inf, f),
             num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(2, jnp.int32),
+            num_integrations=jnp.array(0, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
-            done=~ok0,
-            status=Status.where(
-                ok0, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
-            ),
-            history=hist,
+            done=jnp.array(False),
+            status=Status.SUCCESS,
+            history=History.empty(max_steps, ("alpha", "kind")),
         )
 
     def step(self, sqp, problem, control, simulator, state: LineSearchState):
         ev, a, lam = state.ev, state.a, state.lam
-        # A fresh direction (cheap: no integration); kept only when no search is pending.
         knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
 
         def start(B):
@@ -217,49 +217,65 @@ class LineSearch(eqx.Module):
             base = sqp.release_inactive(ev, lam, lam_qp)
             return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
 
-        # If B's step is no descent direction for the merit (B degenerated, or the knot
-        # ordering bent the step), restart from a scaled identity. Both are cheap (no
-        # integration), so both are computed: no branch under vmap.
-        B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
-        from_B, from_reset = start(state.B), start(B_reset)
-        reset = ~(from_B[5] < 0)
-        d_new, lam_new, dlam_new, mu_new, phi0_new, dphi0_new = jax.tree.map(
-            lambda r, b: jnp.where(reset, r, b), from_reset, from_B
-        )
+        # A fresh direction (no integration) unless a search is pending; if B's step is no
+        # descent direction for the merit (B degenerated, or the knot ordering bent the step),
+        # once more from a scaled identity. A loop of at most two rounds, so that the QP is
+        # compiled once; under vmap a lane whose loop ended keeps its result.
         fresh = ~state.searching
-        B = jnp.where(fresh & reset, B_reset, state.B)
+        B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
+
+        def round_(carry):
+            tries, _, _ = carry
+            B = jnp.where(tries == 0, state.B, B_reset)
+            return tries + 1, B, start(B)
+
+        def again(carry):
+            tries, _, out = carry
+            return fresh & ((tries == 0) | ((tries == 1) & ~(out[5] < 0)))
+
+        f0 = jnp.zeros((), a.dtype)
+        unused = (jnp.zeros_like(a), lam, jnp.zeros_like(lam), state.mu, f0, f0)
+        _, B, (d_new, lam_new, dlam_new, mu_new, phi0_new, dphi0_new) = lax.while_loop(
+            again, round_, (jnp.array(0), state.B, unused)
+        )
         pick = lambda new, old: jnp.where(fresh, new, old)
         d, dlam, lam = pick(d_new, state.d), pick(dlam_new, state.dlam), pick(lam_new, lam)
         mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
         alpha = jnp.where(fresh, 1.0, state.alpha)
 
-        # one integration: the candidate
+        # one integration: the candidate (the first step's is the start, weighed with its
+        # least-squares multipliers)
+        first = state.num_steps == 0
         soc = state.soc
         step_taken = alpha * d + jnp.where(soc, state.d_soc, 0.0)
         lam_c = lam + alpha * dlam
-        if sqp.hessian == "bfgs" and sqp.exact_iterations > 0:
-            # exact Hessians for the first `exact_iterations` iterations, then BFGS
-            early = state.num_iterations < sqp.exact_iterations
-            cand, B_exact = lax.cond(
+
+        def weights(cand):
+            least_squares = lambda: jnp.nan_to_num(
+                least_squares_multipliers(cand, sqp.path_active), nan=0.0, posinf=0.0, neginf=0.0
+            )
+            return lax.cond(first, least_squares, lambda: lam_c)
+
+        if sqp.hessian == "bfgs":
+            # exact Hessians at the start and for the first `exact_iterations` iterations
+            early = first | (state.num_iterations < sqp.exact_iterations)
+            cand, B_exact, lam_c = lax.cond(
                 early,
-                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, lam_c),
-                lambda: (sqp.restricted(problem, control, a + step_taken, simulator), B),
+                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, weights),
+                lambda: (sqp.restricted(problem, control, a + step_taken, simulator), B, lam_c),
             )
         else:
-            cand, B_exact = sqp.evaluate(problem, control, a + step_taken, simulator, lam_c)
-            early = True
+            cand, B_exact, lam_c = sqp.exact_hessian(problem, control, a + step_taken, simulator, weights)
         phi = merit(cand, lam_c, mu)
         finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
         descent = dphi0 < 0
         # Armijo, relaxed by the merit's round-off (10 eps |phi|): near the solution the
         # predicted decrease falls below what float64 can resolve.
         slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))
-        accept = finite & descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)
+        accept = finite & (first | (descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)))
 
         # accepted: Hessian update at the new point
-        if B_exact is None:
-            B_acc = _bfgs_step(B, step_taken, cand, ev, lam_c)
-        elif sqp.hessian == "bfgs":
+        if sqp.hessian == "bfgs":
             B_acc = jnp.where(early, B_exact, _bfgs_step(B, step_taken, cand, ev, lam_c))
         else:
             B_acc = B_exact
@@ -285,17 +301,18 @@ class LineSearch(eqx.Module):
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
         # within the merit's round-off without halving the projected gradient.
         improved = pg < 0.5 * state.best_gradient
-        unresolved = accept & (phi > phi0 - slack) & ~improved
+        unresolved = accept & ~first & (phi > phi0 - slack) & ~improved
         flat = jnp.where(accept, jnp.where(unresolved, state.num_flat + 1, 0), state.num_flat)
         negligible = jnp.linalg.norm(step_taken) <= 1e-15 * (1.0 + jnp.linalg.norm(a))
-        no_progress = (
+        no_progress = ~first & (
             (~accept & ~try_soc & (alpha_next < self.min_step))
             | ~descent
             | (accept & negligible)
             | (flat >= self.flat_steps)
         )
         converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
-        done = converged | stalled
+        bad_start = first & ~accept
+        done = converged | stalled | bad_start
         infeasible = stalled & ~feasible  # tested only there (least squares over every row)
         infeasible = lax.cond(
             infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
@@ -309,7 +326,7 @@ class LineSearch(eqx.Module):
             step_norm=jnp.linalg.norm(step_taken),
             accepted=accept,
             constraint_tolerance=sqp.ctol,
-            details={"alpha": alpha, "kind": jnp.where(fresh, 1, jnp.where(soc, 3, 2))},
+            details={"alpha": alpha, "kind": jnp.where(first, 0, jnp.where(fresh, 1, jnp.where(soc, 3, 2)))},
         )
         return LineSearchState(
             a=new_a,
@@ -327,20 +344,24 @@ class LineSearch(eqx.Module):
             d_soc=d_soc,
             alpha_bt=jnp.where(try_soc, alpha_q, state.alpha_bt),
             radius=jnp.where(
-                accept,
+                accept & ~first,
                 jnp.where(alpha < 1.0, alpha * jnp.max(jnp.abs(d)), jnp.minimum(2.0 * state.radius, 1e3)),
                 state.radius,
             ),
             num_flat=flat.astype(jnp.int32),
             best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
-            num_iterations=state.num_iterations + accept.astype(jnp.int32),
+            num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
             num_integrations=state.num_integrations + 1,
             num_steps=i + 1,
             done=done,
             status=Status.where(
-                converged,
-                Status.SUCCESS,
-                Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED),
+                bad_start,
+                Status.where(cand.status == Status.SUCCESS, Status.NONFINITE, cand.status),
+                Status.where(
+                    converged,
+                    Status.SUCCESS,
+                    Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED),
+                ),
             ),
             history=history,
         )

@@ -22,7 +22,7 @@ class History(eqx.Module):
     - `details`: the solver's own per-step quantities under its own names, float64 (NaN where
       unused): KalmanSearch `rho` (gradient weight) and `phase` (0 constraint capture, 1
       minimum search); KalmanSQP with `LineSearch` `alpha` (step fraction) and `kind` (1 new
-      direction, 2 backtracking, 3 second-order correction), with `TrustRegion`
+      direction, 2 backtracking, 3 second-order correction; 0 the start), with `TrustRegion`
       `radius` and `kind` (0 the start, 1 new step, 3 second-order correction);
       AugmentedLagrangian `outer_iteration`.
     """

@@ -140,7 +140,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     solver, sim = jt.KalmanSQP(), jt.RK4(50)
     ev = evaluate_restricted(prob, ctrl, a0, sim)
     lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-    _, B = solver.exact_hessian(prob, ctrl, a0, sim, lam)
+    _, B, _ = solver.exact_hessian(prob, ctrl, a0, sim, lam)
     d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
     dlam, mu, phi0, slope = solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp)
     assert float(mu) > 0

@@ -175,7 +175,7 @@ def test_problem_name_does_not_recompile():
     ("solver", "details", "start_step"),
     [
         (jt.KalmanSearch(), {"rho", "phase"}, False),
-        (jt.KalmanSQP(), {"alpha", "kind"}, False),
+        (jt.KalmanSQP(), {"alpha", "kind"}, True),
         (jt.KalmanSQP(hessian="exact", globalization="trust-region"), {"radius", "kind"}, True),
         (jt.AugmentedLagrangian(), {"outer_iteration"}, False),
     ],
