@@ -5,7 +5,9 @@ One `step` = one candidate: compute the search increment Da with the sequential 
 update (prior -rho G_a, observations -s_i E_i), run the *preliminary* linearized checks
 (re-tuning rho and the betas and recomputing Da, without integrating, until they pass), add
 the node-time ordering observations of appendix C, integrate a + Da with sensitivities, and
-run the *final* checks: accept, or shrink Da by the quadratic-model factor and retry.
+run the *final* checks: accept, or shrink Da by the quadratic-model factor and retry. The
+first step's candidate is the start itself (`init` integrates nothing, so the program holds
+the evaluation kernel once).
 
 Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:" below):
 
@@ -69,7 +71,7 @@ from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import constraint_rows, inequality_rows, stationarity
-from ._sensitivity import Evaluation, evaluate_restricted
+from ._sensitivity import Evaluation, evaluate_restricted, unevaluated
 from ._solution import History, Solution
 from ._status import Status
 
@@ -297,29 +299,27 @@ class KalmanSearch(AbstractSolver):
 
     def init(self, problem, control, a0, simulator, max_steps):
         require_rows(problem, control, "KalmanSearch")
-        ev = evaluate_restricted(problem, control, a0, simulator, self.method)
+        # Nothing is integrated here: the first `step` evaluates the start (a pending
+        # increment of zero), so the compiled program holds the evaluation kernel once.
         f = jnp.float64
-        hist = History.empty(max_steps, ("rho", "phase"))
-        ok0 = ev.status == Status.SUCCESS
-        e_a0 = jnp.asarray(self.e_a_start, f)
         return _State(
             a=a0,
-            ev=ev,
+            ev=unevaluated(lambda a: evaluate_restricted(problem, control, a, simulator, self.method), a0),
             rho=jnp.asarray(self.rho, f),
             beta=jnp.asarray(self.beta, f),
             beta_p=jnp.asarray(self.beta_p, f),
-            phase=jnp.where(jnp.max(jnp.abs(_errors(ev, _values(ev))), initial=0.0) <= e_a0, 1, 0).astype(jnp.int32),
-            e_a=e_a0,
+            phase=jnp.array(0, jnp.int32),
+            e_a=jnp.asarray(self.e_a_start, f),
             da_pending=jnp.zeros_like(a0),
-            has_pending=jnp.array(False),
+            has_pending=jnp.array(True),
             since_reject=jnp.array(2, jnp.int32),
             num_rejections=jnp.array(0, jnp.int32),
             num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(1, jnp.int32),
+            num_integrations=jnp.array(0, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
-            done=~ok0,
-            status=Status.where(ok0, Status.SUCCESS, ev.status),
-            history=hist,
+            done=jnp.array(False),
+            status=Status.SUCCESS,
+            history=History.empty(max_steps, ("rho", "phase")),
         )
 
     def step(self, problem, control, simulator, state: _State):
@@ -334,7 +334,9 @@ class KalmanSearch(AbstractSolver):
             lambda: self._preliminary(ev, state.rho, state.beta, state.beta_p, phase, e_a, knots, dknots),
         )
 
-        # integrate the candidate (one integration with sensitivities)
+        # integrate the candidate (one integration with sensitivities; the first step's is
+        # the start, accepted when finite, with the phase its errors give)
+        first = state.num_steps == 0
         cand = evaluate_restricted(problem, control, a + da, simulator, self.method)
         finite = cand.status == Status.SUCCESS
         # the checks on the error vector [E; max(C, 0)], its models on the raw values
@@ -347,7 +349,7 @@ class KalmanSearch(AbstractSolver):
         # final checks [4.39] / [4.43, 4.45]
         capture_ok = jnp.linalg.norm(E_star) < nE
         min_ok = jnp.all(jnp.abs(E_star) <= band) & (G_star < G)
-        accept = finite & jnp.where(phase == 0, capture_ok, min_ok)
+        accept = finite & (first | jnp.where(phase == 0, capture_ok, min_ok))
 
         # shrink factor from the quadratic models [4.40], [4.44], [4.47]
         def model(al):
@@ -372,7 +374,7 @@ class KalmanSearch(AbstractSolver):
         lin_min = (jnp.abs(G_star - G - dG_lin) < self.linearity_ratio * jnp.abs(dG_lin)) & jnp.all(
             nonlin_E <= self.linearity_ratio * jnp.maximum(jnp.abs(E_lin - E), band - jnp.abs(E_lin))
         )
-        linear = jnp.where(phase == 0, lin_capture, lin_min) & (state.since_reject >= 2)
+        linear = jnp.where(phase == 0, lin_capture, lin_min) & (state.since_reject >= 2) & ~first
         rho_acc = jnp.where(linear, rho * self.rho_increase, rho)
         reduced_all = jnp.all(jnp.abs(E_star) < jnp.abs(E))
         lower_betas = (phase == 1) & reduced_all
@@ -408,7 +410,8 @@ class KalmanSearch(AbstractSolver):
         new_e_a = jnp.where(advance, next_e_a, e_a)
         new_phase = jnp.where(advance, jnp.where(maxE <= next_e_a, 1, 0), new_phase).astype(jnp.int32)
 
-        done = success | stalled | stationary_fail
+        bad_start = first & ~finite
+        done = success | stalled | stationary_fail | bad_start
         status = Status.where(
             success,
             Status.SUCCESS,
@@ -416,6 +419,7 @@ class KalmanSearch(AbstractSolver):
                 stalled, Status.STALLED, Status.where(stationary_fail, Status.CONSTRAINT_STATIONARY, Status.SUCCESS)
             ),
         )
+        status = Status.where(bad_start, cand.status, status)
         i = state.num_steps
         history = state.history.record(
             i,
@@ -439,9 +443,11 @@ class KalmanSearch(AbstractSolver):
             e_a=new_e_a,
             da_pending=jnp.where(accept, jnp.zeros_like(da), alpha * da),
             has_pending=~accept & ~advance,
-            since_reject=jnp.where(accept, state.since_reject + 1, 0).astype(jnp.int32),
+            since_reject=jnp.where(first, state.since_reject, jnp.where(accept, state.since_reject + 1, 0)).astype(
+                jnp.int32
+            ),
             num_rejections=n_rej.astype(jnp.int32),
-            num_iterations=state.num_iterations + accept.astype(jnp.int32),
+            num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
             num_integrations=state.num_integrations + 1,
             num_steps=i + 1,
             done=done,

@@ -77,7 +77,7 @@ from ._kkt import (
     with_knot_gaps,
 )
 from ._line_search import LineSearch
-from ._sensitivity import Evaluation, evaluate_restricted
+from ._sensitivity import Evaluation, evaluate_restricted, unevaluated
 from ._solution import Solution
 from ._trust_region import TrustRegion
 
@@ -236,7 +236,7 @@ class KalmanSQP(AbstractSolver):
             ev = self.restricted(problem, control, a, simulator)
             return ev, least_squares_multipliers(ev, self.path_active)
 
-        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(shapes, a0))
+        return unevaluated(shapes, a0)
 
     # ------------------------------------------------------------------ the QP step
 

@@ -299,6 +299,13 @@ def evaluate_restricted(problem, control, a, simulator, method="forward") -> Eva
     return Evaluation(xf=xf, xf_a=xf_a, tf=tf, G=G, G_a=G_a, E=E, H=H, status=status, **path)
 
 
+def unevaluated(fn, *args):
+    """Zeros shaped as `fn(*args)` (traced by `jax.eval_shape`: neither compiled nor
+    integrated): the placeholder evaluation of a solver state whose first `step` evaluates
+    the start, so that the compiled program holds each evaluation kernel once (issue 21)."""
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *args))
+
+
 evaluate_jitted = eqx.filter_jit(evaluate_restricted)
 
 
