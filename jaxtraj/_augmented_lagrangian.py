@@ -90,7 +90,7 @@ from ._driver import AbstractSolver
 from ._kkt import multipliers
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
-from ._status import Status, diverged
+from ._status import Status, diverged, failed
 from .controls import saturates_within, value_bounds
 
 # ------------------------------------------------------------------------------------------
@@ -497,9 +497,7 @@ class AugmentedLagrangian(AbstractSolver):
             num_integrations=jnp.array(1, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
             done=~ok,
-            status=Status.where(
-                ok, Status.SUCCESS, Status.where(ev.status == Status.SUCCESS, Status.NONFINITE, ev.status)
-            ),
+            status=Status.where(ok, Status.SUCCESS, failed(ev.status)),
             history=hist,
         )
 

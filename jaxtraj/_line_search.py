@@ -53,7 +53,7 @@ from ._kkt import (
 )
 from ._sensitivity import Evaluation
 from ._solution import History
-from ._status import Status
+from ._status import Status, failed
 
 
 def bfgs_update(B, s, y, damping=0.2):
@@ -356,7 +356,7 @@ class LineSearch(eqx.Module):
             done=done,
             status=Status.where(
                 bad_start,
-                Status.where(cand.status == Status.SUCCESS, Status.NONFINITE, cand.status),
+                failed(cand.status),
                 Status.where(
                     converged,
                     Status.SUCCESS,

@@ -57,6 +57,12 @@ def diverged(G, a):
     return (jnp.abs(G) > DIVERGENCE) | (jnp.max(jnp.abs(a)) > DIVERGENCE)
 
 
+def failed(status):
+    """The status of an evaluation found unusable: its own failure, or NONFINITE where the
+    integration succeeded but a value derived from it (merit, multipliers) is not finite."""
+    return Status.where(status == Status.SUCCESS, Status.NONFINITE, status)
+
+
 _Item = type(Status.SUCCESS)  # equinox's EnumerationItem (not exported by name)
 
 

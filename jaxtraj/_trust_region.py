@@ -82,7 +82,7 @@ from ._kkt import (
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._simulate import RK4, final_state
 from ._solution import History
-from ._status import Status
+from ._status import Status, failed
 
 _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the bracket)
 
@@ -317,9 +317,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     total = d + jnp.where(fresh, 0.0, state.d_soc)
     cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
     # the candidate's multipliers: the QP's with inequalities (least squares at the start)
-    lam_c = _multipliers(cand, sqp.path_active)
     if with_rows:
-        lam_c = lax.cond(first, lambda: lam_c, lambda: lam_qp)
+        lam_c = lax.cond(first, lambda: _multipliers(cand, sqp.path_active), lambda: lam_qp)
+    else:
+        lam_c = _multipliers(cand, sqp.path_active)
     phi = merit(cand, lam, mu)
     new_knots = control.knots(a + total)
     # knots in order, up to the round-off a collapsed segment (gap 0, held by its row) leaves
@@ -407,7 +408,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         done=converged | stalled | bad_start,
         status=Status.where(
             bad_start,
-            Status.where(cand.status == Status.SUCCESS, Status.NONFINITE, cand.status),
+            failed(cand.status),
             Status.where(
                 converged, Status.SUCCESS, Status.where(infeasible, Status.CONSTRAINT_STATIONARY, Status.STALLED)
             ),
