@@ -63,7 +63,8 @@ limits of its own inside the declared control bounds cannot honor them: the solv
 ValueError.
 
 **Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
-reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones)
+reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones),
+in the scaled parameters a_i / max(|a_i|, 1) as every solver's (`jaxtraj._kkt.stationarity`),
 <= `gtol` (1 + |G|). STALLED: an outer iteration whose inner loop could not decrease L_A at all
 (two rejected steps in a row, none accepted) while feasible. DIVERGED: a parameter or |G|
 past 1e20 (`_status.DIVERGENCE`, IPOPT's `diverging_iterates_tol` rule, shared by every
@@ -87,7 +88,7 @@ import optax
 
 from ._checks import check_settings
 from ._driver import AbstractSolver
-from ._kkt import multipliers
+from ._kkt import multipliers, parameter_scale
 from ._sensitivity import Evaluation, evaluate_restricted
 from ._solution import History, Solution
 from ._status import Status, diverged, failed
@@ -560,7 +561,7 @@ class AugmentedLagrangian(AbstractSolver):
 
         # ---- inner termination, and the outer update computed for every step (branch-free)
         scale = self._scale(ev)
-        pg = jnp.linalg.norm(box.reduce(new_a, grad))
+        pg = jnp.linalg.norm(parameter_scale(new_a) * box.reduce(new_a, grad))
         stuck = rejected >= 2
         solved = pg <= state.omega * scale
         inner_done = solved | (inner_count >= self.max_inner) | stuck
@@ -650,7 +651,7 @@ class AugmentedLagrangian(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=jnp.linalg.norm(box.reduce(state.a, state.grad)),
+            projected_gradient=jnp.linalg.norm(parameter_scale(state.a) * box.reduce(state.a, state.grad)),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

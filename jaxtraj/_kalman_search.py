@@ -53,8 +53,9 @@ Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:"
   [4.40, 4.44]) runs on the error vector [E; max(C, 0)]; the adaptation tests [B.2, B.5] and
   the change cap [4.27] stay on E; the projected gradient [3.62] is taken against H and the
   rows of the points with C >= -e_a.
-* Convergence in the minimum search: the projected gradient |V G_a| [3.62] below
-  `max(gtol, e_a) (1 + |G|)` (a loose stage needs no tighter stationarity than its band).
+* Convergence in the minimum search: the projected gradient |V G_a| [3.62] (in the scaled
+  parameters a_i / max(|a_i|, 1), `jaxtraj._kkt.stationarity`) below `max(gtol, e_a) (1 +
+  |G|)` (a loose stage needs no tighter stationarity than its band).
   MAXREJ consecutive rejections or a negligible step [4.26, 4.48] without that test
   passing end the search as STALLED (the thesis checks 3.62 before calling it converged). (With the
   published e_m the printed test alpha_g e_m (1 + |G|) is far below what any run reaches.)
@@ -141,7 +142,7 @@ class KalmanSearch(AbstractSolver):
     - `gap_keep`: the least fraction of a knot gap one increment keeps (0.5; module docs).
 
     What SUCCESS guarantees: max |E_i| <= `e_a`, max C <= `e_a` on the grid, and the
-    projected gradient |V G_a| <= max(`gtol`, `e_a`) (1 + |G|) (1e-5 relative by default: a
+    projected gradient |V G_a| (scaled parameters, module docs) <= max(`gtol`, `e_a`) (1 + |G|) (1e-5 relative by default: a
     first-order method, it stops at the first point that passes). It bounds the distance to
     the optimum only through the curvature: |a - a*| <= |V G_a| / lambda_min(reduced
     Hessian) on a convex quadratic problem (3e-4 on the min-energy double integrator with
@@ -389,7 +390,7 @@ class KalmanSearch(AbstractSolver):
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
-        pg = stationarity(new_ev, e_a)
+        pg = stationarity(new_ev, new_a, e_a)
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
         converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)
@@ -468,7 +469,7 @@ class KalmanSearch(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=stationarity(state.ev, state.e_a),
+            projected_gradient=stationarity(state.ev, state.a, state.e_a),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -47,7 +47,8 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   every start.
 * Termination. What SUCCESS guarantees: max |E_i| <= `ctol`, max C <= `ctol` on the grid,
   and the projected gradient |V G_a| (V: projection on the tangent space of E and of the
-  path points with C >= -`path_active`) <= `acceptable_gtol` (1 + |G|). The search runs
+  path points with C >= -`path_active`; right-signed multipliers; in the scaled parameters
+  a_i / max(|a_i|, 1): `jaxtraj._kkt.stationarity`) <= `acceptable_gtol` (1 + |G|). The search runs
   until |V G_a| <= `gtol` (1 + |G|) (the usual outcome) or until no measurable progress is
   left (each globalization says when); that point is SUCCESS if it meets the guarantee,
   otherwise STALLED (with the line search CONSTRAINT_STATIONARY where it is infeasible at a
@@ -369,7 +370,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=stationarity(with_knot_gaps(control, state.ev, state.a), self.path_active),
+            projected_gradient=stationarity(with_knot_gaps(control, state.ev, state.a), state.a, self.path_active),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -111,11 +111,20 @@ def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
     return converged, ~converged & no_progress
 
 
-def stationarity(ev, tol):
-    """The first-order KKT stationarity residual with multipliers of the right sign:
-    |G_a + H^T lambda + C_a^T nu| over free lambda (equalities) and nu >= 0 on the inequality
-    rows with C >= -`tol` (nu = 0 on the others). Without inequalities it is the projected
-    gradient |V G_a|.
+def parameter_scale(a):
+    """max(|a_i|, 1): the scale of each parameter in the stationarity test."""
+    return jnp.maximum(jnp.abs(a), 1.0)
+
+
+def stationarity(ev, a, tol):
+    """The first-order KKT stationarity residual with multipliers of the right sign, in the
+    coordinates a_i / max(|a_i|, 1) (Dennis & Schnabel's relative gradient): |D (G_a + H^T
+    lambda + C_a^T nu)| with D = `parameter_scale(a)`, over free lambda (equalities) and
+    nu >= 0 on the inequality rows with C >= -`tol` (nu = 0 on the others). Without
+    inequalities it is the projected gradient |V D G_a| of the scaled problem. The scale
+    keeps a free scale of the parameters (a gauge: a control vector normalized in the
+    dynamics) from passing the test by growing them, which shrinks the raw gradient as 1/|a|
+    (orbit raising: a false SUCCESS at |a| ~ 1e6, docs/history.md).
 
     The multipliers come from least squares on the near-active rows; then every row with a
     negative multiplier leaves and the rest are solved again, until none is negative (each
@@ -123,11 +132,12 @@ def stationarity(ev, tol):
     non-negative least-squares problem), so the residual can overstate but never understate
     the distance from stationarity: a row that the gradient pulls the point away from (a
     negative multiplier) does not count as holding the point."""
+    D = parameter_scale(a)
     rows = inequality_rows(ev)
     if rows is None:
-        return projected_gradient(ev.G_a, ev.H)
+        return projected_gradient(ev.G_a * D, ev.H * D[None])
     C, C_a = rows
-    return signed_multipliers(ev.G_a, ev.H, C_a, C >= -tol)[0]
+    return signed_multipliers(ev.G_a * D, ev.H * D[None], C_a * D[None], C >= -tol)[0]
 
 
 def infeasibility_stationarity(ev, tol):

@@ -295,7 +295,7 @@ class LineSearch(eqx.Module):
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
-        pg = stationarity(kkt_ev, sqp.path_active)
+        pg = stationarity(kkt_ev, new_a, sqp.path_active)
         feasible = is_feasible(new_ev, sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from ._bounds import bound_row_names, knot_gap_names
 from ._checks import check_inputs
-from ._kkt import inequality_rows, signed_multipliers, with_knot_gaps
+from ._kkt import inequality_rows, parameter_scale, signed_multipliers, with_knot_gaps
 from ._problem import Problem
 from ._sensitivity import evaluate_restricted
 from ._simulate import RK4, AbstractSimulator, check_simulator
@@ -18,9 +18,10 @@ class KKTReport(eqx.Module):
     """First-order KKT residuals of the restricted problem at `params` (`jt.kkt_report`).
 
     - `objective`: G.
-    - `stationarity`: |G_a + H^T lambda + J^T nu| with free lambda on the terminal equalities
-      and nu >= 0 on the inequality rows within `active` of their bound (nu = 0 on the others):
-      the residual every solver's SUCCESS tests (`Solution.projected_gradient`).
+    - `stationarity`: |D (G_a + H^T lambda + J^T nu)| with free lambda on the terminal
+      equalities and nu >= 0 on the inequality rows within `active` of their bound (nu = 0 on
+      the others), D = diag(max(|a_i|, 1)) (the scaled parameters a_i / max(|a_i|, 1)): the
+      residual every solver's SUCCESS tests (`Solution.projected_gradient`).
     - `complementarity`: max |nu_i g_i| over the inequality rows (a multiplier on a row that is
       not at its bound).
     - `violation`: by constraint name, how far it is violated (>= 0): |E_i| for a terminal
@@ -84,7 +85,8 @@ def _residuals(problem, control, a, simulator, active):
         g, keep, C_a = jnp.zeros(0), jnp.zeros(0, bool), jnp.zeros((0, a.shape[0]))
     else:
         (g, C_a), keep = rows, rows[0] >= -active
-    residual, lam = signed_multipliers(ev.G_a, ev.H, C_a, keep)
+    D = parameter_scale(a)
+    residual, lam = signed_multipliers(ev.G_a * D, ev.H * D[None], C_a * D[None], keep)
     return ev.G, ev.E, g, lam[:m], lam[m:], residual, ev.status
 
 

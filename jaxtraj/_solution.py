@@ -77,7 +77,8 @@ class Solution(eqx.Module):
       sensitivities), including rejected candidates and the initial one.
     - `status`: a `jt.Status`; `sol.status == jt.Status.SUCCESS`.
     - `projected_gradient`: |V G_a| with V the projection on the constraints' tangent space
-      (the KKT stationarity residual of the restricted problem; `jt.kkt_report(problem,
+      in the scaled parameters a_i / max(|a_i|, 1) (the KKT stationarity residual of the
+      restricted problem; `jt.kkt_report(problem,
       control, sol.params)` gives every residual and multiplier by constraint name).
     - `history`: a `History`; `steps`: how many of its entries are filled.
     - `max_path_constraint`, `max_path_time`: for problems with path constraints C <= 0

@@ -75,7 +75,6 @@ from ._kkt import (
     locally_infeasible,
     merit,
     merit_value,
-    projected_gradient,
     stationarity,
     with_knot_gaps,
 )
@@ -354,10 +353,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     feasible = is_feasible(new_ev, sqp.ctol)
     if with_rows:
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
-        pg = stationarity(kkt_ev, sqp.path_active)
+        pg = stationarity(kkt_ev, new_a, sqp.path_active)
     else:
         kkt_ev = new_ev
-        pg = projected_gradient(new_ev.G_a, new_ev.H)
+        pg = stationarity(new_ev, new_a, sqp.path_active)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
     # a feasible point, a fresh step inside the radius (the model's own minimizer) predicts a

@@ -76,10 +76,15 @@ def _energy_problem(bound=None):
 def _energy_on_line(sol):
     """The optimum is u = 6 - 12 t (energy 6) on [0, 1]: check u on a grid, and the energy.
     Any h_1 holds it, h_1 = 0 or 1 too (a segment of length 0 at the bound h >= 0, whose
-    far node then does not matter): check the function, not the nodes."""
+    far node then does not matter): check the function, not the nodes.
+
+    The energy is checked to what the solver's feasibility tolerance allows: reaching
+    (x, v) at time T costs V = (6 x^2 - 6 x v T + 2 v^2 T^2) / T^3, whose gradient at (1, 0,
+    1) is (12, -6, -18), so a point within E of the constraints is within 36 E of 6."""
     t = np.linspace(0.0, 1.0, 41)[1:-1]
     np.testing.assert_allclose(np.asarray(CTRL(sol.params, t))[:, 0], 6.0 - 12.0 * t, atol=2e-4)
-    assert float(sol.objective) == pytest.approx(6.0, rel=1e-8)
+    tol = 36.0 * float(sol.max_constraint_error) + 1e-10
+    assert float(sol.objective) == pytest.approx(6.0, abs=tol)
 
 
 def test_declared_affinity_matches_a_probe():

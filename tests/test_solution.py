@@ -31,7 +31,10 @@ def _distance_bound(sol):
     e_a and projected gradient pg <= max(gtol, e_a) (1 + |G|) (checked here), hence
     |a - a*| <= pg / lambda_min(Z^T M Z) + (E's share), with M = d2G/du2 the P1 mass matrix
     of the three segments (exact: G = 1/2 int u^2) and Z the null space of H (the
-    constraints are linear in a; tf is fixed by its own row)."""
+    constraints are linear in a; tf is fixed by its own row). pg is measured in the scale
+    D = max(|a_i|, 1) >= 1: a - a* = D w with w in the null space of H D, and the projection
+    of the scaled gradient D M D w on it is at least (D w)^T M (D w) / |w| >= lambda_min
+    |D w|^2 / |D w| long, so the bound holds as for D = 1."""
     claimed = max(SOLVER.gtol, SOLVER.e_a) * (1.0 + abs(float(sol.objective)))
     assert float(sol.max_constraint_error) <= SOLVER.e_a and float(sol.projected_gradient) <= claimed
     h = 1.0 / 3.0
