@@ -13,7 +13,8 @@ is installed, IPOPT (both on the same compiled evaluation). A solver that cannot
 problem's constraints raises; the table says `refused`.
 
 With `--random N`, each jaxtraj solver also runs N random starts per problem
-(`jt.random_starts` around the naive start, `--spread`, key 0; `jt.solve_batch`, at most
+(`jt.random_starts` around the naive start, `--spread`, key 0, draws that the solves'
+simulator cannot integrate replaced by further draws; `jt.solve_batch`, at most
 `--max-steps` steps) and a second table counts them: at the reference, SUCCESS elsewhere
 that passes an independent KKT check (`jt.kkt_report` with the solver's own tolerances,
 `ctol` or `e_a` and `acceptable_gtol` or `gtol`, loosened tenfold: another local optimum),
@@ -63,7 +64,9 @@ def _at_reference(entry, status, J):
 def random_starts(entry, run, n, spread, max_steps):
     """Counts over `n` random starts: (at the reference, SUCCESS at another KKT point, false
     SUCCESS (the KKT check fails), {other status: count})."""
-    starts = jt.random_starts(entry.problem, entry.control, jax.random.key(0), n, around=entry.start, spread=spread)
+    starts = jt.random_starts(
+        entry.problem, entry.control, jax.random.key(0), n, around=entry.start, spread=spread, simulator=SIM
+    )
     sols = jt.solve_batch(
         entry.problem,
         entry.control,

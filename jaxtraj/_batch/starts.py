@@ -11,6 +11,8 @@ import numpy as np
 
 from .._checks import check_inputs
 from .._driver import AbstractSolver
+from .._sensitivity import path_values
+from .._simulate import RK4, AbstractSimulator, check_simulator, final_state, simulation_status
 from .._solution import Solution
 from .._status import STATUS_NAMES, Status
 from ..controls import AbstractControl, value_bounds
@@ -32,28 +34,28 @@ def _all_knots(control, a):
     return jax.vmap(control.knots)(a)
 
 
-def random_starts(problem, control: AbstractControl, key, n: int, around, spread=0.1):
-    """`n` reproducible random starting vectors around `around`, valid for `control`.
+@eqx.filter_jit
+def _usable(problem, control, starts, simulator):
+    """Per start: the integration succeeds and the final state, objective, terminal values
+    (and path constraints on the grid) are finite: what a solver's first evaluation needs."""
 
-    - Segment durations (knot gaps) are multiplied by independent factors exp(spread z), and
-      the time parameters are solved back from the new knots (exact for node-time and
-      duration layouts; a least-squares fit of tf when only tf is free). Times therefore stay
-      increasing and tf > 0 by construction.
-    - Every other entry gets additive noise spread * s * z, with s the RMS of those entries
-      of `around` (1 if they are all zero); `spread` may also be an array `(num_params,)`.
-    - Control values (the family's `value_indices`) are clipped to the bounds of the problem
-      (`control_lower/upper`) and the family's own `limits`, free initial-state components
-      to theirs.
-    """
-    around = check_inputs(problem, control, around)
-    n = check_int("n", n, 1)
-    typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ()
-    raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
-    if not (typed or raw):
-        raise ValueError(f"`key` must be a JAX PRNG key (jax.random.key(seed)); got {key!r}.")
-    spread = np.broadcast_to(np.asarray(spread, dtype=np.float64), (control.num_params,))
-    if not np.all(np.isfinite(spread) & (spread >= 0)):
-        raise ValueError(f"`spread` must be >= 0 and finite; got {spread}.")
+    def one(a):
+        if problem.path is None:
+            xf, status = final_state(problem, control, a, simulator)
+            ok, values = status == Status.SUCCESS, []
+        else:
+            xf, (_, C, ok) = path_values(problem, control, a, simulator)
+            values = [C]
+        tf = control.tf(a)
+        ends = (problem.objective, problem.terminal, problem.terminal_inequality)
+        values += [fn(tf, xf, problem.args) for fn in ends if fn is not None]
+        return simulation_status(ok, xf, *values) == Status.SUCCESS
+
+    return jax.vmap(one)(starts)
+
+
+def _draw(problem, control, key, n, around, spread):
+    """`n` starts from one key (the recipe of `random_starts`), as a NumPy array."""
     t_idx = np.asarray(control.time_indices, int)
     other = np.setdiff1d(np.arange(control.num_params), t_idx)
     knots, jac, z, noise = (np.asarray(x) for x in _draws(control, around, key, n))
@@ -79,6 +81,61 @@ def random_starts(problem, control: AbstractControl, key, n: int, around, spread
     kn = np.asarray(_all_knots(control, jnp.asarray(starts)))
     if not (np.all(np.isfinite(starts)) and np.all(np.diff(kn, axis=1) > 0) and np.all(kn[:, -1] > 0)):
         raise ValueError("`around`/`spread`: could not generate valid starts (knots not increasing); lower `spread`.")
+    return starts
+
+
+def random_starts(
+    problem,
+    control: AbstractControl,
+    key,
+    n: int,
+    around,
+    spread=0.1,
+    *,
+    simulator: AbstractSimulator = RK4(),
+    redraws: int = 8,
+):
+    """`n` reproducible random starting vectors around `around`, valid for `control`.
+
+    - Segment durations (knot gaps) are multiplied by independent factors exp(spread z), and
+      the time parameters are solved back from the new knots (exact for node-time and
+      duration layouts; a least-squares fit of tf when only tf is free). Times therefore stay
+      increasing and tf > 0 by construction.
+    - Every other entry gets additive noise spread * s * z, with s the RMS of those entries
+      of `around` (1 if they are all zero); `spread` may also be an array `(num_params,)`.
+    - Control values (the family's `value_indices`) are clipped to the bounds of the problem
+      (`control_lower/upper`) and the family's own `limits`, free initial-state components
+      to theirs.
+    - Each start is integrated once with `simulator` (keyword-only, default `jt.RK4(100)`,
+      `jt.solve`'s): a start whose integration fails, or whose final state, objective,
+      terminal or path values are not finite, cannot begin a search (its solve would end
+      NONFINITE at step 0). It is replaced by the next usable start of up to `redraws`
+      further rounds of `n` draws (keys `jax.random.fold_in(key, r)`, r = 1, 2, ...); the
+      usable starts of the first round keep their places. A start still unusable after
+      them is returned as drawn. `redraws=0` skips the check.
+    """
+    around = check_inputs(problem, control, around)
+    n = check_int("n", n, 1)
+    typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ()
+    raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
+    if not (typed or raw):
+        raise ValueError(f"`key` must be a JAX PRNG key (jax.random.key(seed)); got {key!r}.")
+    spread = np.broadcast_to(np.asarray(spread, dtype=np.float64), (control.num_params,))
+    if not np.all(np.isfinite(spread) & (spread >= 0)):
+        raise ValueError(f"`spread` must be >= 0 and finite; got {spread}.")
+    redraws = check_int("redraws", redraws, 0)
+    check_simulator(simulator)
+    starts = _draw(problem, control, key, n, around, spread)
+    if redraws:
+        bad = ~np.asarray(_usable(problem, control, jnp.asarray(starts), simulator))
+        for r in range(1, redraws + 1):
+            if not bad.any():
+                break
+            more = _draw(problem, control, jax.random.fold_in(key, r), n, around, spread)
+            good = np.flatnonzero(np.asarray(_usable(problem, control, jnp.asarray(more), simulator)))
+            slots = np.flatnonzero(bad)[: good.size]
+            starts[slots] = more[good[: slots.size]]
+            bad[slots] = False
     return jnp.asarray(starts)
 
 
@@ -179,7 +236,8 @@ def multistart(
     - `key`: a JAX PRNG key; the same key gives the same starts (and results).
     - `n`: number of starts.
     - `around`: the centre vector (required), e.g. `control.initial_guess(tf, u0, u1)`.
-    - `spread`: relative size of the perturbation (see `jt.random_starts`).
+    - `spread`: relative size of the perturbation (see `jt.random_starts`, which draws the
+      starts and replaces those that the solves' `simulator` cannot integrate).
     - `solver`: as for `jt.solve`; `tol`: objectives closer than `tol (1 + |G|)` count as
       one local optimum.
     - other keywords go to `jt.solve_batch` (`chunk_size`, `devices`, `out`, `max_steps`, ...).
@@ -194,7 +252,8 @@ def multistart(
     if not (isinstance(tol, (int, float)) and tol >= 0):
         raise ValueError(f"`tol` must be a number >= 0; got {tol!r}.")
     t0 = time.perf_counter()
-    starts = random_starts(problem, control, key, n, around, spread)
+    simulator = solve_batch_kwargs.get("simulator", RK4())
+    starts = random_starts(problem, control, key, n, around, spread, simulator=simulator)
     sols = solve_batch(problem, control, starts, solver, **solve_batch_kwargs)
     wall = time.perf_counter() - t0
     ok = np.asarray(sols.status == Status.SUCCESS)
