@@ -73,15 +73,19 @@ def lagrangian_gradient(ev, lam):
     return ev.G_a + constraint_rows(ev).T @ lam
 
 
-def merit_value(G, E, C, lam, mu):
+def merit_value(G, E, C, lam, mu, on=None):
     """The augmented-Lagrangian merit of both KalmanSQP globalizations: G + lambda^T E + mu/2
     |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term psi = (max(0, nu + mu C)^2 -
-    nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0)."""
+    nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0).
+
+    `on` overrides which rows take the branch nu C + mu/2 C^2 (default nu + mu C > 0): at
+    mu = 0 the term is max(nu, 0) C, kinked at nu = 0, and a slope along a step that raises
+    a zero multiplier must take that row's branch (`LineSearch.start`)."""
     m = E.shape[0]
     value = G + lam[:m] @ E + 0.5 * mu * (E @ E)
     if C is not None:
         nu = lam[m:]
-        on = nu + mu * C > 0
+        on = nu + mu * C > 0 if on is None else on
         off = jnp.where(nu > 0, -(nu**2) / (2.0 * jnp.where(mu > 0, mu, 1.0)), 0.0)  # nu > 0 here implies mu > 0
         value = value + jnp.sum(jnp.where(on, nu * C + 0.5 * mu * C**2, off))
     return value

@@ -139,15 +139,26 @@ class LineSearch(eqx.Module):
     def start(self, sqp, ev, lam, mu, B, d, lam_qp):
         """Penalty update and the merit's value and slope at alpha = 0."""
         dlam = lam_qp - lam
+        m = ev.E.shape[0]
         rows = inequality_rows(ev)
         C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
         Gd, Hd = ev.G_a @ d, ev.H @ d
 
         def slope(mu):
-            # d/dalpha of the merit of the linearized constraints along (d, dlam)
+            # d/dalpha of the merit of the linearized constraints along (d, dlam), one-sided
+            # (alpha -> 0+): a row takes the PHR branch nu C + mu/2 C^2 where nu + mu C > 0,
+            # or = 0 and growing along the step. At mu = 0 a row whose multiplier is 0 and
+            # rises (a violated row entering the QP's active set) adds dnu C; the two-sided
+            # rule missed it (Bryson-Denham from random starts: slope -24 against +87 by
+            # finite differences, so no step length was accepted).
+            on = None
+            if C is not None:
+                s, ds = lam[m:] + mu * C, dlam[m:] + mu * Cd
+                on = (s > 0) | ((s == 0) & (ds > 0))
+
             def phi(alpha):
                 C_alpha = None if C is None else C + alpha * Cd
-                return merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu)
+                return merit_value(ev.G + alpha * Gd, ev.E + alpha * Hd, C_alpha, lam + alpha * dlam, mu, on)
 
             return jax.jvp(phi, (jnp.zeros_like(mu),), (jnp.ones_like(mu),))[1]
 

@@ -11,6 +11,7 @@ from helpers import ROUNDOFF_EPS, TRUST_REGION, perturbed_starts
 from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
+from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
 from jaxtraj._kkt import kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
@@ -150,6 +151,34 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     assert abs(float(phi(0.0)) - float(phi0)) < 1e-14
     assert abs(float(fd) - float(slope)) < 1e-7 * (1 + abs(float(slope)))
     assert float(slope) <= -0.5 * float(d @ B @ d) * (1 - 1e-12)
+
+
+def test_merit_slope_where_a_zero_multiplier_rises():
+    """The slope's kink: at penalty 0 a path row's term is max(nu, 0) C, and a step that
+    raises a zero multiplier on a violated row adds dnu C > 0 (one-sided). Bryson-Denham
+    from an infeasible random start (x <= 1/9 violated on the grid), at the iterate after
+    its first step (penalty 0): the line search's slope against a forward difference of real
+    evaluations (before the fix: -24 against +87, the penalty left at 0 and no step length
+    accepted, STALLED), and a descent one."""
+    entry = jt.problems.classic.get("bryson-denham")
+    prob, ctrl, sim = entry.problem, entry.control, jt.RK4(40)
+    a0 = jt.random_starts(prob, ctrl, jax.random.key(0), 32, entry.start, 0.5, simulator=sim)[19]
+    solver = jt.KalmanSQP()
+    step = eqx.filter_jit(lambda s: solver.step(prob, ctrl, sim, s))
+    state = step(step(init_state(solver, prob, ctrl, a0, sim, 10)))  # the start, one accepted step
+    ev, a, m = state.ev, state.a, state.ev.E.shape[0]
+    assert bool(state.history.accepted[1]) and float(state.mu) == 0.0 and float(jnp.max(ev.C)) > 0.1
+    d, lam_qp = solver.direction(ev, state.B, state.lam, ctrl.knots(a), jax.jacfwd(ctrl.knots)(a), state.radius)
+    d = d * jnp.minimum(1.0, state.radius / jnp.max(jnp.abs(d)))  # the line search's cap
+    base = solver.release_inactive(ev, state.lam, lam_qp)
+    dlam, mu, phi0, slope = solver.globalization.start(solver, ev, base, state.mu, state.B, d, lam_qp)
+    assert bool(jnp.any((base[m:] == 0) & (dlam[m:] > 0) & (ev.C.reshape(-1) > 0)))  # the kink
+    phi = lambda t: merit(evaluate_restricted(prob, ctrl, a + t * d, sim), base + t * dlam, mu)
+    h = 1e-7
+    fd = (phi(h) - phi(0.0)) / h
+    assert abs(float(phi(0.0)) - float(phi0)) < 1e-12 * (1 + abs(float(phi0)))
+    assert abs(float(fd) - float(slope)) < 1e-4 * (1 + abs(float(slope)))
+    assert float(slope) <= -0.5 * float(d @ state.B @ d) * (1 - 1e-12)
 
 
 @pytest.mark.parametrize("case", range(1, 8))
