@@ -136,6 +136,12 @@ class ParameterBox(eqx.Module):
         return g
 
 
+def _stationarity(box: ParameterBox, a, grad):
+    """The reduced gradient's norm in the scaled parameters a_i / max(|a_i|, 1), as every
+    solver's KKT test (`jaxtraj._kkt.stationarity`)."""
+    return jnp.linalg.norm(parameter_scale(a) * box.reduce(a, grad))
+
+
 def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
     """The `ParameterBox` of `control`'s parameters for `problem` (see the module docs), from
     the family's declared layout (`value_indices`, `limits`, `time_layout`). Pure (usable
@@ -561,7 +567,7 @@ class AugmentedLagrangian(AbstractSolver):
 
         # ---- inner termination, and the outer update computed for every step (branch-free)
         scale = self._scale(ev)
-        pg = jnp.linalg.norm(parameter_scale(new_a) * box.reduce(new_a, grad))
+        pg = _stationarity(box, new_a, grad)
         stuck = rejected >= 2
         solved = pg <= state.omega * scale
         inner_done = solved | (inner_count >= self.max_inner) | stuck
@@ -651,7 +657,7 @@ class AugmentedLagrangian(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=jnp.linalg.norm(parameter_scale(state.a) * box.reduce(state.a, state.grad)),
+            projected_gradient=_stationarity(box, state.a, state.grad),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -136,12 +136,16 @@ def stationarity(ev, a, tol):
     non-negative least-squares problem), so the residual can overstate but never understate
     the distance from stationarity: a row that the gradient pulls the point away from (a
     negative multiplier) does not count as holding the point."""
+    return stationarity_multipliers(ev, a, tol)[0]
+
+
+def stationarity_multipliers(ev, a, tol):
+    """`(residual, [lambda; nu])`: `stationarity`'s residual and the multipliers that give it
+    (in the units of the constraints: the scale multiplies the residual, not them)."""
     D = parameter_scale(a)
     rows = inequality_rows(ev)
-    if rows is None:
-        return projected_gradient(ev.G_a * D, ev.H * D[None])
-    C, C_a = rows
-    return signed_multipliers(ev.G_a * D, ev.H * D[None], C_a * D[None], C >= -tol)[0]
+    C, C_a = (jnp.zeros(0, a.dtype), jnp.zeros((0, a.shape[0]), a.dtype)) if rows is None else rows
+    return signed_multipliers(ev.G_a * D, ev.H * D[None], C_a * D[None], C >= -tol)
 
 
 def infeasibility_stationarity(ev, tol):

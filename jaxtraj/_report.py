@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from ._bounds import bound_row_names, knot_gap_names
 from ._checks import check_inputs
-from ._kkt import inequality_rows, parameter_scale, signed_multipliers, with_knot_gaps
+from ._kkt import inequality_rows, stationarity_multipliers, with_knot_gaps
 from ._problem import Problem
 from ._sensitivity import evaluate_restricted
 from ._simulate import RK4, AbstractSimulator, check_simulator
@@ -81,12 +81,8 @@ def _residuals(problem, control, a, simulator, active):
     ev = with_knot_gaps(control, evaluate_restricted(problem, control, a, simulator), a)
     m = ev.E.shape[0]
     rows = inequality_rows(ev)
-    if rows is None:
-        g, keep, C_a = jnp.zeros(0), jnp.zeros(0, bool), jnp.zeros((0, a.shape[0]))
-    else:
-        (g, C_a), keep = rows, rows[0] >= -active
-    D = parameter_scale(a)
-    residual, lam = signed_multipliers(ev.G_a * D, ev.H * D[None], C_a * D[None], keep)
+    g = jnp.zeros(0) if rows is None else rows[0]
+    residual, lam = stationarity_multipliers(ev, a, active)
     return ev.G, ev.E, g, lam[:m], lam[m:], residual, ev.status
 
 

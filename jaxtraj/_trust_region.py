@@ -351,12 +351,8 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, state.lam))
     maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
     feasible = is_feasible(new_ev, sqp.ctol)
-    if with_rows:
-        kkt_ev = with_knot_gaps(control, new_ev, new_a)
-        pg = stationarity(kkt_ev, new_a, sqp.path_active)
-    else:
-        kkt_ev = new_ev
-        pg = stationarity(new_ev, new_a, sqp.path_active)
+    kkt_ev = with_knot_gaps(control, new_ev, new_a) if with_rows else new_ev
+    pg = stationarity(kkt_ev, new_a, sqp.path_active)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
     # a feasible point, a fresh step inside the radius (the model's own minimizer) predicts a
