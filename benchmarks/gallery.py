@@ -12,13 +12,14 @@ Solvers: KalmanSQP (default), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and
 is installed, IPOPT (both on the same compiled evaluation). A solver that cannot honor a
 problem's constraints raises; the table says `refused`.
 
-With `--random N`, each jaxtraj solver also runs N random starts per problem
+With `--random N`, every solver also runs the same N random starts per problem
 (`jt.random_starts` around the naive start, `--spread`, key 0, draws that the solves'
-simulator cannot integrate replaced by further draws; `jt.solve_batch`, at most
-`--max-steps` steps) and a second table counts them: at the reference, SUCCESS elsewhere
-that passes an independent KKT check (`jt.kkt_report` with the solver's own tolerances,
-`ctol` or `e_a` and `acceptable_gtol` or `gtol`, loosened tenfold: another local optimum),
-false SUCCESS (fails it), and the other statuses.
+simulator cannot integrate replaced by further draws; jaxtraj's solvers by `jt.solve_batch`
+with at most `--max-steps` steps, the baselines one start after another with their own
+iteration limits) and a second table counts them: at the reference, SUCCESS elsewhere that
+passes an independent KKT check (`jt.kkt_report` with the solver's own tolerances, `ctol` or
+`e_a` and `acceptable_gtol` or `gtol`, for the baselines the default KalmanSQP's, loosened
+tenfold: another local optimum), false SUCCESS (fails it), and the other statuses.
 
 Run: `python benchmarks/gallery.py [--problems lq bryson-denham] [--solvers default slsqp]
 [--random 32 --spread 0.5]`.
@@ -61,32 +62,43 @@ def _at_reference(entry, status, J):
     return status == "SUCCESS" and -tol <= J - entry.reference <= entry.gap + tol
 
 
-def random_starts(entry, run, n, spread, max_steps):
-    """Counts over `n` random starts: (at the reference, SUCCESS at another KKT point, false
-    SUCCESS (the KKT check fails), {other status: count})."""
-    starts = jt.random_starts(
+def draw_starts(entry, n, spread):
+    """The `n` random starts of a problem, the same for every solver."""
+    return jt.random_starts(
         entry.problem, entry.control, jax.random.key(0), n, around=entry.start, spread=spread, simulator=SIM
     )
-    sols = jt.solve_batch(
-        entry.problem,
-        entry.control,
-        starts,
-        run.solver,
-        simulator=SIM,
-        max_steps=max_steps,
-        progress=False,
-        history=False,
-    )
-    names, J = jt.status_name(sols.status), np.asarray(sols.objective)
+
+
+def random_starts(entry, run, starts, max_steps):
+    """Counts over the random `starts`: (at the reference, SUCCESS at another KKT point,
+    false SUCCESS (the KKT check fails), {other status: count}). jaxtraj's solvers run them as
+    one `jt.solve_batch`, the baselines one after another."""
+    if hasattr(run, "solver"):
+        sols = jt.solve_batch(
+            entry.problem,
+            entry.control,
+            starts,
+            run.solver,
+            simulator=SIM,
+            max_steps=max_steps,
+            progress=False,
+            history=False,
+        )
+        names, J, params = jt.status_name(sols.status), np.asarray(sols.objective), sols.params
+        solver = run.solver
+        ctol = getattr(solver, "ctol", getattr(solver, "e_a", 1e-9))
+        gtol = getattr(solver, "acceptable_gtol", getattr(solver, "gtol", 1e-6))
+    else:
+        results = [run.fn(entry.problem, entry.control, a, simulator=SIM) for a in starts]
+        names = np.asarray(["SUCCESS" if r.success else "FAILED" for r in results])
+        J, params = np.asarray([r.objective for r in results]), [r.params for r in results]
+        ctol, gtol = 1e-9, 1e-6  # the default KalmanSQP's: what "another local optimum" must pass
     at = [_at_reference(entry, s, j) for s, j in zip(names, J)]
     elsewhere = [i for i, s in enumerate(names) if s == "SUCCESS" and not at[i]]
     # a SUCCESS off the reference is another local optimum only if it passes an independent
     # KKT check (`jt.kkt_report`, the solver's own tolerances loosened tenfold); else it is false
-    solver = run.solver
-    ctol = 10 * getattr(solver, "ctol", getattr(solver, "e_a", 1e-9))
-    gtol = 10 * getattr(solver, "acceptable_gtol", getattr(solver, "gtol", 1e-6))
     false = sum(
-        not jt.kkt_report(entry.problem, entry.control, sols.params[i], simulator=SIM).satisfied(ctol, gtol)
+        not jt.kkt_report(entry.problem, entry.control, params[i], simulator=SIM).satisfied(10 * ctol, 10 * gtol)
         for i in elsewhere
     )
     others = {k: int(np.sum(names == k)) for k in sorted(set(names) - {"SUCCESS"})}
@@ -98,6 +110,7 @@ def _run_baseline(fn):
         res = fn(entry.problem, entry.control, entry.start, simulator=SIM)
         return ("SUCCESS" if res.success else "FAILED"), float(res.objective), int(res.iterations)
 
+    run.fn = fn
     return run
 
 
@@ -135,7 +148,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--problems", nargs="*", default=list(CLASSIC.names()))
     parser.add_argument("--solvers", nargs="*", default=list(SOLVERS))
-    parser.add_argument("--random", type=int, default=0, help="random starts per problem (jaxtraj solvers)")
+    parser.add_argument("--random", type=int, default=0, help="random starts per problem (every solver)")
     parser.add_argument("--spread", type=float, default=0.5, help="jt.random_starts spread")
     parser.add_argument("--max-steps", type=int, default=2000, help="steps per random start")
     parser.add_argument("--no-naive", action="store_true", help="only the random starts")
@@ -170,14 +183,11 @@ def main():
         print("|---|---|---:|---:|---:|---|---:|")
         for name in args.problems:
             entry = CLASSIC.get(name)
+            starts = draw_starts(entry, args.random, args.spread)
             for sname in args.solvers:
-                if not hasattr(SOLVERS[sname], "solver"):
-                    continue
                 t0 = time.perf_counter()
                 try:
-                    at, elsewhere, false, others = random_starts(
-                        entry, SOLVERS[sname], args.random, args.spread, args.max_steps
-                    )
+                    at, elsewhere, false, others = random_starts(entry, SOLVERS[sname], starts, args.max_steps)
                 except ValueError:
                     print(f"| {name} | {sname} | refused | | | | |")
                     continue

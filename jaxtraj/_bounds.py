@@ -107,29 +107,33 @@ def bound_row_names(problem, control) -> list[str]:
     return upper + lower
 
 
-def _free_knots(control) -> bool:
-    return control.time_layout not in ("final_time", "fixed")
-
-
 def knot_gap_names(control) -> list[str]:
-    """A name for each row of `knot_gap_rows` (`"segment k length"`), none for fixed knots."""
-    return [f"segment {k} length" for k in range(control.num_segments)] if _free_knots(control) else []
+    """A name for each row of `knot_gap_rows`: `"segment k length"`, or `"time span"` for
+    equally spaced knots; none for fixed knots."""
+    layout = control.time_layout
+    if layout == "fixed":
+        return []
+    return ["time span"] if layout == "final_time" else [f"segment {k} length" for k in range(control.num_segments)]
 
 
 def knot_gap_rows(control, a):
-    """`(values (K,), Jacobian (K, np))` of the rows t_k - t_{k+1} <= 0 (segments of
-    nonnegative length) of a family whose knots move with `a` (time layouts `"knots"`,
-    `"durations"`, `"interior_knots"`); None for equally spaced or fixed knots. Rows of the
-    same inequality set, so that a KKT test sees the multiplier of a collapsed segment.
+    """`(values, Jacobian)` of the rows that keep the time axis ordered: t_k - t_{k+1} <= 0
+    (segments of nonnegative length, `(K,)`) for a family whose knots move with `a` (time
+    layouts `"knots"`, `"durations"`, `"interior_knots"`), the one row t_0 - t_f <= 0 for
+    equally spaced knots over a free final time (`"final_time"`); None for fixed knots. Rows
+    of the same inequality set, so that a KKT test sees the multiplier of a collapsed segment,
+    and the infeasibility test a final time pressed to t_0 (a minimum-time problem started
+    heading away from its target: its violation is least at tf = t_0, a local minimum of it).
 
     The Jacobian is taken at `a` itself rather than reused from the step's linearization at
     the previous point: an own family may map parameters to knots nonlinearly, and this is
     one forward-mode pass through `knots` (no integration)."""
-    if not _free_knots(control):
+    layout = control.time_layout
+    if layout == "fixed":
         return None
 
     def gap(a):
         knots = control.knots(a)
-        return knots[:-1] - knots[1:]
+        return knots[:1] - knots[-1:] if layout == "final_time" else knots[:-1] - knots[1:]
 
     return gap(a), jax.jacfwd(gap)(a)

@@ -150,16 +150,17 @@ def stationarity_multipliers(ev, a, tol):
 
 def infeasibility_stationarity(ev, tol):
     """The same residual for the constraint violation phi = 1/2 |E|^2 + 1/2 |max(C, 0)|^2
-    (no equality rows): |grad phi + C_a^T nu| over nu >= 0 on the satisfied inequality rows
-    with C >= -`tol`. Zero (relative to |H| |E|) at a point where no step that keeps those
-    rows can lower the violation to first order: locally infeasible."""
+    (no equality rows): |grad phi + C_a^T nu| over nu >= 0 on the inequality rows with
+    |C| <= `tol` (met, or violated by no more than round-off: a final time pressed to 0
+    from above ends at C = +3e-15). Zero (relative to |H| |E|) at a point where no step that
+    keeps those rows can lower the violation to first order: locally infeasible."""
     rows = inequality_rows(ev)
     grad = ev.H.T @ ev.E
     if rows is None:
         return jnp.linalg.norm(grad)
     C, C_a = rows
     grad = grad + C_a.T @ jnp.maximum(C, 0.0)
-    return signed_multipliers(grad, ev.H[:0], C_a, (C >= -tol) & (C <= 0.0))[0]
+    return signed_multipliers(grad, ev.H[:0], C_a, jnp.abs(C) <= tol)[0]
 
 
 def locally_infeasible(ev, tol, rtol):

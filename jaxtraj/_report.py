@@ -28,7 +28,8 @@ class KKTReport(eqx.Module):
       equality, max(g, 0) for an inequality; for a path constraint the largest over the
       integration grid. Names: `constraint_names`, `path_names`, `terminal_inequality_names`,
       `"<control> upper bound at a[i]"` for a control-bound row, `"<state> lower bound
-      (initial)"` for a free initial state, `"segment k length"` for free knots.
+      (initial)"` for a free initial state, `"segment k length"` for free knots, `"time
+      span"` (t_0 - tf <= 0) for equally spaced knots over a free final time.
     - `multipliers`: by the same names: lambda_i of an equality, nu >= 0 of an inequality;
       either is -dG*/db, the sensitivity of the optimal objective to the constraint's bound b
       (E = c(a) - b, g = c(a) - b <= 0); for a path constraint the sum over the grid points

@@ -364,7 +364,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     bad_start = first & ~accept
     infeasible = stalled & ~feasible  # tested only there (least squares over every row)
     infeasible = lax.cond(
-        infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
+        infeasible,
+        lambda: locally_infeasible(with_knot_gaps(control, new_ev, new_a), sqp.path_active, sqp.acceptable_gtol),
+        lambda: infeasible,
     )
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
     # first-order integration alone (in a single solve; under vmap both branches run).

@@ -170,6 +170,32 @@ def test_locally_infeasible_problem_gets_its_own_status():
     )
 
 
+def test_final_time_pressed_to_zero_is_a_stationary_point_of_the_violation():
+    """Zermelo (x' = cos(theta) - y, y' = sin(theta), from (3.66, -1.86) to the origin) with
+    every heading theta = 0, away from the target: at tf -> 0 the violation 1/2 |E|^2 rises
+    along every direction that keeps tf >= 0 (dtf > 0 moves the ship away; the headings act
+    only over tf), a local minimum of it that the infeasibility test must recognize through
+    the time-span row t0 - tf <= 0 of equally spaced knots (no row: a gradient along tf, no
+    verdict). Checked first by finite differences along random directions."""
+    from jaxtraj._kkt import locally_infeasible, with_knot_gaps
+    from jaxtraj._sensitivity import evaluate_jitted
+
+    entry = jt.problems.classic.zermelo()
+    prob, ctrl = entry.problem, entry.control
+    violation = jax.jit(lambda a: 0.5 * jnp.sum(jt.simulate(prob, ctrl, a, simulator=SIM).xf ** 2))
+    assert jt.kkt_report(prob, ctrl, jnp.r_[jnp.zeros(9), 1.0], simulator=SIM).violation.keys() >= {"time span"}
+    for tf, expected in [(1e-9, True), (1.0, False)]:
+        a = jnp.r_[jnp.zeros(9), tf]
+        ev = evaluate_jitted(prob, ctrl, a, SIM)
+        assert bool(locally_infeasible(with_knot_gaps(ctrl, ev, a), 1e-6, 1e-6)) is expected
+        if expected:
+            assert not bool(locally_infeasible(ev, 1e-6, 1e-6))  # without the row: no verdict
+            dirs = np.random.default_rng(3).standard_normal((16, 10))
+            dirs[:, -1] = np.abs(dirs[:, -1])  # tf >= 0
+            rise = [float(violation(a + 1e-4 * jnp.asarray(d))) - float(violation(a)) for d in dirs]
+            assert min(rise) > 0.0
+
+
 def test_state_bound_errors_name_the_argument():
     with pytest.raises(ValueError, match="state_upper"):
         bryson_denham().__class__(

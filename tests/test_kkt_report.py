@@ -21,7 +21,9 @@ def test_equality_multipliers_are_the_value_sensitivities():
     dJ = (2 * (6 * p - 3 * v * T) / T**3, 2 * (-3 * p * T + 2 * v * T**2) / T**3, -6 * 3 * p**2 / T**4)
     for name, d in zip(("position", "velocity", "final time"), dJ):
         np.testing.assert_allclose(report.multipliers[name], -d, rtol=1e-6)
-    assert set(report.violation) == {"position", "velocity", "final time"}
+    # the time span t0 - tf <= 0 of the equally spaced knots: an inactive row, no multiplier
+    assert set(report.violation) == {"position", "velocity", "final time", "time span"}
+    assert float(report.multipliers["time span"]) == 0.0
     assert float(report.complementarity) == 0.0 and float(report.max_violation) < 1e-12
     assert "final time" in str(report) and "multiplier" in str(report)
 
