@@ -15,7 +15,11 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   (forward-over-forward autodiff through the simulation) at a0 and at the candidates of the
   first `exact_iterations` iterations, then Powell-damped BFGS updates on the Lagrangian
   gradient, which keep it positive definite (the early exact Hessians steer the first steps
-  into the right basin; pure BFGS ends case 3 in a worse local minimum). `hessian="exact"`:
+  into the right basin; pure BFGS ends case 3 in a worse local minimum). With the line
+  search, a candidate of a search that backtracks (its BFGS step was rejected) is evaluated
+  with the exact Hessian too, which replaces the model if it is accepted (unless
+  `exact_iterations=0`, pure BFGS): BFGS cannot learn a free scale of the parameters (orbit
+  raising's thrust vector; random starts 11 -> 30 of 32 at the reference). `hessian="exact"`:
   the exact Hessian at every candidate (fewer iterations, more work per iteration). Either
   exact Hessian is made positive definite by `convexify`.
 * Globalization (`globalization`, a module with its own settings and state): the merit line
@@ -132,9 +136,9 @@ class KalmanSQP(AbstractSolver):
 
     Fields:
 
-    - `hessian`: `"bfgs"` (exact Hessian of the Lagrangian at the start and for the first
-      `exact_iterations` iterations, then damped BFGS) or `"exact"` (exact Hessian at every
-      candidate).
+    - `hessian`: `"bfgs"` (exact Hessian of the Lagrangian at the start, for the first
+      `exact_iterations` iterations and after a rejected step, then damped BFGS) or
+      `"exact"` (exact Hessian at every candidate).
     - `exact_iterations`: see `hessian` (int >= 0, 3).
     - `ctol`: constraint tolerance on max |E_i| and on max C (1e-10).
     - `gtol`: projected-gradient target, relative to 1 + |G| (1e-9): the search stops when

@@ -27,9 +27,10 @@ def inequality_rows(ev):
 
 
 def with_knot_gaps(control, ev, a):
-    """`ev` with the knot gaps t_k - t_{k+1} <= 0 of free knots as more parameter rows
-    (`Evaluation.V`, `_bounds.knot_gap_rows`), for the KKT test: a segment shrunk to (nearly)
-    zero length is held by its gap, whose multiplier the stationarity residual must see."""
+    """`ev` with the knot gaps t_k - t_{k+1} <= 0 of free knots (the time span t_0 - tf <= 0
+    of equally spaced ones) as more parameter rows (`Evaluation.V`, `_bounds.knot_gap_rows`),
+    for the KKT and infeasibility tests: a segment shrunk to (nearly) zero length is held by
+    its gap, whose multiplier the stationarity residual must see."""
     gaps = knot_gap_rows(control, a)
     if gaps is None:
         return ev
