@@ -19,7 +19,7 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   search, a candidate of a search that backtracks (its BFGS step was rejected) is evaluated
   with the exact Hessian too, which replaces the model if it is accepted (unless
   `exact_iterations=0`, pure BFGS): BFGS cannot learn a free scale of the parameters (orbit
-  raising's thrust vector; random starts 11 -> 30 of 32 at the reference). `hessian="exact"`:
+  raising's thrust vector, normalized in the dynamics). `hessian="exact"`:
   the exact Hessian at every candidate (fewer iterations, more work per iteration). Either
   exact Hessian is made positive definite by `convexify`.
 * Globalization (`globalization`, a module with its own settings and state): the merit line

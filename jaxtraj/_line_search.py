@@ -271,8 +271,8 @@ class LineSearch(eqx.Module):
             # exact Hessians at the start, for the first `exact_iterations` iterations and
             # (unless pure BFGS, `exact_iterations=0`) at every candidate of a line search that
             # backtracks: a BFGS model whose full step was rejected is replaced by the exact
-            # one (orbit raising, whose thrust vector's free length BFGS cannot learn: random
-            # starts 11 -> 30 of 32 at the reference; RESULTS.md)
+            # one (BFGS cannot learn a free scale of the parameters, e.g. a control vector
+            # normalized in the dynamics; measurements in benchmarks/RESULTS.md)
             early = first | (state.num_iterations < sqp.exact_iterations)
             if sqp.exact_iterations > 0:
                 early = early | ~fresh
