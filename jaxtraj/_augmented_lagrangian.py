@@ -99,6 +99,11 @@ from .controls import saturates_within, value_bounds
 # ------------------------------------------------------------------------------------------
 
 
+#: a component this close to a bound (relative to max(|bound|, 1)) with the gradient pushing
+#: it out is decoupled in the metric (`gauss_newton_metric`); KalmanSQP's `path_active`
+BOUND_TOLERANCE = 1e-6
+
+
 class ParameterBox(eqx.Module):
     """Bounds of a parameter vector: `lower <= a <= upper` component-wise (+-inf where free),
     and, if `knot_indices` is not empty, the free knot times a[knot_indices] = t_1..t_K kept
@@ -248,7 +253,8 @@ class Metric(eqx.Module):
 def gauss_newton_metric(ev: Evaluation, m: Multipliers, a, grad, box: ParameterBox, curvature):
     """`Metric` at `a` with M = curvature I + sum_i rho_i h_i h_i^T + sum_(active j) sigma c_j
     c_j^T (h_i, c_j: gradients of the scaled constraints; a path point is active where
-    nu + sigma C > 0); rows and columns of bound-binding parameters are decoupled."""
+    nu + sigma C > 0); rows and columns of parameters on or near (`BOUND_TOLERANCE`) a bound the
+    gradient pushes them out of are decoupled."""
     C, C_a = _path_arrays(ev)
     Hs = m.e_scale[:, None] * ev.H
     Cs_a = m.c_scale[None, :, None] * C_a
@@ -256,7 +262,17 @@ def gauss_newton_metric(ev: Evaluation, m: Multipliers, a, grad, box: ParameterB
     w = jnp.where(active, m.sigma[None], 0.0)
     gn = (Hs.T * m.rho[None, :]) @ Hs + jnp.einsum("nqp,nq,nqr->pr", Cs_a, w, Cs_a)
     n = a.shape[0]
-    free = ~(((a <= box.lower) & (grad > 0)) | ((a >= box.upper) & (grad < 0)))  # not binding
+
+    # Decoupled: the components on a bound that the gradient pushes out of, and those within
+    # BOUND_TOLERANCE (relative to max(|bound|, 1)) of it (Bertsekas's epsilon-active set).
+    # With exact comparisons a node 1.6e-11 below its bound stayed coupled: its share of the
+    # step was clipped by the projection after 1.6e-11 and the rest of the step ascended, so
+    # every step was rejected (`test_control_bounds_against_slsqp` on an AVX-without-AVX2
+    # CPU). Decoupled, its own step takes it onto the bound and the rest descends.
+    def near(bound):
+        return jnp.where(jnp.isfinite(bound), BOUND_TOLERANCE * jnp.maximum(jnp.abs(bound), 1.0), 0.0)
+
+    free = ~(((a <= box.lower + near(box.lower)) & (grad > 0)) | ((a >= box.upper - near(box.upper)) & (grad < 0)))
     gn = jnp.where(free[:, None] & free[None, :], gn, 0.0)
     M = gn + curvature * jnp.eye(n, dtype=a.dtype)
     L = jnp.linalg.cholesky(0.5 * (M + M.T))

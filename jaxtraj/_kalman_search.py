@@ -146,7 +146,10 @@ class KalmanSearch(AbstractSolver):
     first-order method, it stops at the first point that passes). It bounds the distance to
     the optimum only through the curvature: |a - a*| <= |V G_a| / lambda_min(reduced
     Hessian) on a convex quadratic problem (3e-4 on the min-energy double integrator with
-    `PiecewiseLinear(3)`, tested). For stationarity to 1e-9 use `jt.KalmanSQP`. A batch
+    `PiecewiseLinear(3)`, tested). A `gtol` far below the default may not be reached: the
+    search zigzags inside the constraint band and ends STALLED at a point that depends on
+    the round-off (gtol = 1e-9 there: 4 of 9 round-off-perturbed starts). For stationarity
+    to 1e-9 use `jt.KalmanSQP`. A batch
     (`jax.vmap`, `jt.solve_batch`) is not bitwise equal to single solves (XLA compiles the
     batched program differently); both meet the same guarantee.
     """

@@ -139,13 +139,18 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     at most -1/2 d^T B d after the penalty update."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
     solver, sim = jt.KalmanSQP(), jt.RK4(50)
-    ev = evaluate_restricted(prob, ctrl, a0, sim)
-    lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-    _, B, _ = solver.exact_hessian(prob, ctrl, a0, sim, lam)
-    d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
-    dlam, mu, phi0, slope = solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp)
+
+    @jax.jit  # one program (eagerly, the sensitivities and the QP dispatch op by op)
+    def start(a0):
+        ev = evaluate_restricted(prob, ctrl, a0, sim)
+        lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
+        _, B, _ = solver.exact_hessian(prob, ctrl, a0, sim, lam)
+        d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
+        return (lam, B, d, *solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp))
+
+    lam, B, d, dlam, mu, phi0, slope = start(a0)
     assert float(mu) > 0
-    phi = lambda t: merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu)
+    phi = jax.jit(lambda t: merit(evaluate_restricted(prob, ctrl, a0 + t * d, sim), lam + t * dlam, mu))
     h = 1e-5
     fd = (phi(h) - phi(-h)) / (2 * h)
     assert abs(float(phi(0.0)) - float(phi0)) < 1e-14
@@ -168,12 +173,17 @@ def test_merit_slope_where_a_zero_multiplier_rises():
     state = step(step(init_state(solver, prob, ctrl, a0, sim, 10)))  # the start, one accepted step
     ev, a, m = state.ev, state.a, state.ev.E.shape[0]
     assert bool(state.history.accepted[1]) and float(state.mu) == 0.0 and float(jnp.max(ev.C)) > 0.1
-    d, lam_qp = solver.direction(ev, state.B, state.lam, ctrl.knots(a), jax.jacfwd(ctrl.knots)(a), state.radius)
-    d = d * jnp.minimum(1.0, state.radius / jnp.max(jnp.abs(d)))  # the line search's cap
-    base = solver.release_inactive(ev, state.lam, lam_qp)
-    dlam, mu, phi0, slope = solver.globalization.start(solver, ev, base, state.mu, state.B, d, lam_qp)
+
+    @eqx.filter_jit  # one program (eagerly, the QP dispatches op by op)
+    def start(state):
+        d, lam_qp = solver.direction(ev, state.B, state.lam, ctrl.knots(a), jax.jacfwd(ctrl.knots)(a), state.radius)
+        d = d * jnp.minimum(1.0, state.radius / jnp.max(jnp.abs(d)))  # the line search's cap
+        base = solver.release_inactive(ev, state.lam, lam_qp)
+        return (d, base, *solver.globalization.start(solver, ev, base, state.mu, state.B, d, lam_qp))
+
+    d, base, dlam, mu, phi0, slope = start(state)
     assert bool(jnp.any((base[m:] == 0) & (dlam[m:] > 0) & (ev.C.reshape(-1) > 0)))  # the kink
-    phi = lambda t: merit(evaluate_restricted(prob, ctrl, a + t * d, sim), base + t * dlam, mu)
+    phi = jax.jit(lambda t: merit(evaluate_restricted(prob, ctrl, a + t * d, sim), base + t * dlam, mu))
     h = 1e-7
     fd = (phi(h) - phi(0.0)) / h
     assert abs(float(phi(0.0)) - float(phi0)) < 1e-12 * (1 + abs(float(phi0)))
@@ -480,8 +490,8 @@ def test_lagrangian_hessian_forward_over_reverse_matches_forward_over_forward():
     autodiff of the forward-sensitivity gradient of the Lagrangian (the other simulators' path)."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(1)
     sim, lam = jt.RK4(30), jnp.array([0.3, -1.2, 0.7])
-    W = lagrangian_hessian(prob, ctrl, a0, sim, lam)
-    ref = jax.jacfwd(lambda a: lagrangian_gradient(evaluate_restricted(prob, ctrl, a, sim), lam))(a0)
+    W = jax.jit(lambda a: lagrangian_hessian(prob, ctrl, a, sim, lam))(a0)  # jitted: eagerly op by op
+    ref = jax.jit(jax.jacfwd(lambda a: lagrangian_gradient(evaluate_restricted(prob, ctrl, a, sim), lam)))(a0)
     np.testing.assert_allclose(W, 0.5 * (ref + ref.T), rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
 
 
