@@ -141,10 +141,11 @@ def test_nonfinite_candidate_is_a_rejected_step_not_a_nan_result():
     ctrl = jt.controls.PiecewiseConstant(1)
     solver, sim = jt.KalmanSearch(), jt.RK4(20)
     a = jnp.array([0.0, 0.2])
-    state = solver.step(prob, ctrl, sim, solver.init(prob, ctrl, a, sim, 10))  # the start
+    step = eqx.filter_jit(lambda s: solver.step(prob, ctrl, sim, s))  # one program (eagerly: op by op)
+    state = step(solver.init(prob, ctrl, a, sim, 10))  # the start
     assert bool(state.history.accepted[0]) and not bool(state.done)
     state = eqx.tree_at(lambda s: (s.da_pending, s.has_pending), state, (jnp.array([0.0, 4.8]), jnp.array(True)))
-    new = solver.step(prob, ctrl, sim, state)
+    new = step(state)
     assert not bool(new.history.accepted[1]) and not bool(new.done)
     np.testing.assert_array_equal(new.a, a)
     assert np.all(np.isfinite(np.asarray(new.ev.E))) and np.all(np.isfinite(np.asarray(new.ev.H)))
