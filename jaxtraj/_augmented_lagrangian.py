@@ -124,12 +124,20 @@ class ParameterBox(eqx.Module):
             a = a.at[idx].set(t)
         return a
 
+    def binding(self, a, g, tolerance=0.0):
+        """The components on, beyond or within `tolerance` (relative to max(|bound|, 1)) of a
+        bound that -g points out of."""
+
+        def near(bound):
+            return jnp.where(jnp.isfinite(bound), tolerance * jnp.maximum(jnp.abs(bound), 1.0), 0.0)
+
+        return ((a <= self.lower + near(self.lower)) & (g > 0)) | ((a >= self.upper - near(self.upper)) & (g < 0))
+
     def reduce(self, a, g):
         """The gradient with the components zeroed where `a` sits on (or beyond) a bound and
         -g points out of the box. For free knot times the same rule acts on the durations
         h_k = t_k - t_(k-1) >= `min_gap` (gradient d/dh_k = sum_(j >= k) d/dt_j)."""
-        binding = ((a <= self.lower) & (g > 0)) | ((a >= self.upper) & (g < 0))
-        g = jnp.where(binding, 0.0, g)
+        g = jnp.where(self.binding(a, g), 0.0, g)
         if self.knot_indices:
             idx = jnp.asarray(self.knot_indices)
             t = a[idx]
@@ -262,17 +270,13 @@ def gauss_newton_metric(ev: Evaluation, m: Multipliers, a, grad, box: ParameterB
     w = jnp.where(active, m.sigma[None], 0.0)
     gn = (Hs.T * m.rho[None, :]) @ Hs + jnp.einsum("nqp,nq,nqr->pr", Cs_a, w, Cs_a)
     n = a.shape[0]
-
     # Decoupled: the components on a bound that the gradient pushes out of, and those within
     # BOUND_TOLERANCE (relative to max(|bound|, 1)) of it (Bertsekas's epsilon-active set).
     # With exact comparisons a node 1.6e-11 below its bound stayed coupled: its share of the
     # step was clipped by the projection after 1.6e-11 and the rest of the step ascended, so
     # every step was rejected (`test_control_bounds_against_slsqp` on an AVX-without-AVX2
     # CPU). Decoupled, its own step takes it onto the bound and the rest descends.
-    def near(bound):
-        return jnp.where(jnp.isfinite(bound), BOUND_TOLERANCE * jnp.maximum(jnp.abs(bound), 1.0), 0.0)
-
-    free = ~(((a <= box.lower + near(box.lower)) & (grad > 0)) | ((a >= box.upper - near(box.upper)) & (grad < 0)))
+    free = ~box.binding(a, grad, BOUND_TOLERANCE)
     gn = jnp.where(free[:, None] & free[None, :], gn, 0.0)
     M = gn + curvature * jnp.eye(n, dtype=a.dtype)
     L = jnp.linalg.cholesky(0.5 * (M + M.T))
