@@ -6,20 +6,49 @@ package is float64. The public entry points refuse to run if it is turned off af
 
 import os as _os
 
-# XLA:CPU runs a while loop as one compiled function only when its loop state is "small"
-# (xla_cpu_small_while_loop_byte_threshold); larger loops execute kernel by kernel with a
-# per-kernel dispatch cost. The loop state of a forward-mode Jacobian through RK4 (states x
-# parameters) is just above the default, which made simulation + Jacobian 20x the simulation
-# alone; with the threshold raised it is ~8x (benchmarks/RESULTS.md). The option is read when
-# the CPU backend starts, so it only takes effect if jaxtraj is imported before the first JAX
-# computation. A user's own `--xla_backend_extra_options`, or JAXTRAJ_NO_XLA_TUNING=1, wins.
-if "--xla_backend_extra_options" not in _os.environ.get("XLA_FLAGS", "") and not _os.environ.get(
-    "JAXTRAJ_NO_XLA_TUNING"
-):
-    _os.environ["XLA_FLAGS"] = (
-        _os.environ.get("XLA_FLAGS", "")
-        + " --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
-    ).strip()
+
+def _xla_cpu_options():
+    """XLA:CPU options jaxtraj sets at import, appended to XLA_FLAGS (read when the CPU
+    backend starts: only effective if jaxtraj is imported before the first JAX computation).
+    JAXTRAJ_NO_XLA_TUNING=1 sets none; an option the user already set is left as it is.
+
+    * A while loop runs as one compiled function only when its loop state is "small"
+      (xla_cpu_small_while_loop_byte_threshold); larger loops execute kernel by kernel with
+      a per-kernel dispatch cost. The loop state of a forward-mode Jacobian through RK4
+      (states x parameters) is just above the default, which made simulation + Jacobian
+      20x the simulation alone; with the threshold raised it is ~8x.
+    * The legacy loop emitters (`--xla_cpu_use_fusion_emitters=false`) compile a solver in
+      0.63-0.93x the time of the MLIR fusion emitters with the same results and no
+      consistent warm cost: time to the first answer is mostly XLA compile. XLA aborts the
+      process on a flag it does not know, so only for jaxlib >= 0.5.3 (the first release
+      with it).
+    Measurements: benchmarks/RESULTS.md."""
+    if _os.environ.get("JAXTRAJ_NO_XLA_TUNING"):
+        return
+    flags = _os.environ.get("XLA_FLAGS", "")
+    extra = []
+    if "--xla_backend_extra_options" not in flags:
+        extra.append("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000")
+    if "--xla_cpu_use_fusion_emitters" not in flags and _jaxlib_at_least((0, 5, 3)):
+        extra.append("--xla_cpu_use_fusion_emitters=false")
+    if extra:
+        _os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+
+
+def _jaxlib_at_least(version):
+    """Whether the installed jaxlib is at least `version`, from its package metadata
+    (without importing it)."""
+    import importlib.metadata
+    import re
+
+    try:
+        release = importlib.metadata.version("jaxlib")
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    return tuple(int(x) for x in re.findall(r"\d+", release)[:3]) >= tuple(version)
+
+
+_xla_cpu_options()
 
 import jax as _jax
 

@@ -486,16 +486,25 @@ def test_import_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
     assert _cpu_devices("import jax; jax.numpy.ones(1); import jaxtraj") == 1
 
 
-def test_import_sets_the_xla_cpu_option_xla_accepts():
-    """`import jaxtraj` raises XLA:CPU's small-while-loop threshold, and XLA accepts the option (it
-    aborts on an unknown flag); JAXTRAJ_NO_XLA_TUNING=1 leaves XLA_FLAGS alone."""
+def test_import_sets_the_xla_cpu_options_xla_accepts():
+    """`import jaxtraj` raises XLA:CPU's small-while-loop threshold and, on a jaxlib that knows the
+    flag (0.5.3 on), turns the fusion emitters off; XLA accepts both (it aborts on an unknown
+    flag). JAXTRAJ_NO_XLA_TUNING=1 leaves XLA_FLAGS alone; an option the user set stays theirs."""
+    import jaxlib
+
+    legacy = tuple(int(x) for x in jaxlib.__version__.split(".")[:3]) >= (0, 5, 3)
     code = (
         "import os, jax.numpy as jnp, jaxtraj; print(float(jnp.sin(jnp.arange(3.0)).sum())); "
         "print(os.environ.get('XLA_FLAGS', ''))"
     )
+    threshold = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAJ_NO_XLA_TUNING")}
-    for off in (False, True):
-        extra = {"JAXTRAJ_NO_XLA_TUNING": "1"} if off else {}
+    cases = [  # (extra environment, XLA_FLAGS expected after the import)
+        ({}, [threshold] + ["--xla_cpu_use_fusion_emitters=false"] * legacy),
+        ({"JAXTRAJ_NO_XLA_TUNING": "1"}, []),
+        ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, ["--xla_cpu_use_fusion_emitters=true", threshold]),
+    ]
+    for extra, expected in cases:
         proc = subprocess.run(
             [sys.executable, "-c", code],
             env={**env, **extra, "PYTHONPATH": REPO},
@@ -506,7 +515,7 @@ def test_import_sets_the_xla_cpu_option_xla_accepts():
         assert proc.returncode == 0, proc.stderr[-2000:]
         value, flags = proc.stdout.split("\n")[:2]
         assert float(value) == pytest.approx(np.sin(1.0) + np.sin(2.0), rel=1e-15)
-        assert ("xla_cpu_small_while_loop_byte_threshold=1000000" in flags) is not off
+        assert flags.split() == expected
 
 
 def test_resume_refuses_foreign_or_damaged_chunks(tmp_path):
