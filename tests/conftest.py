@@ -12,10 +12,11 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # A persistent compilation cache private to this test process (one per xdist worker: JAX's
 # file cache does not guard a reader against another process's half-written entry). The
 # module fixture below drops the in-memory caches; programs that several modules compile
-# again (the same problem, solver and shapes) then come from disk instead of XLA.
+# again (the same problem, solver and shapes, and the thousands of small programs of eager
+# operations, hence no minimum compile time) then come from disk instead of XLA.
 _CACHE_DIR = tempfile.mkdtemp(prefix="jaxtraj-test-cache-")
 jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def pytest_unconfigure(config):

@@ -1,15 +1,18 @@
-"""End-to-end tests of the command line, run as a subprocess."""
+"""End-to-end tests of the command line: runs that solve in a subprocess (`python -m jaxtraj`),
+input errors, which end before any computation, in this process (`run_here`)."""
 
 import json
 import os
 import subprocess
 import sys
 
+import jax
 import matplotlib.image
 import numpy as np
 import pytest
 
 import jaxtraj as jt
+from jaxtraj import _cli
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -19,6 +22,35 @@ def run(*args, tmp_path):
     return subprocess.run(
         [sys.executable, "-m", "jaxtraj", *args], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600
     )
+
+
+#: what the command may change in this process's JAX configuration (its compilation cache)
+_CACHE_OPTIONS = (
+    "jax_compilation_cache_dir",
+    "jax_persistent_cache_min_compile_time_secs",
+    "jax_persistent_cache_min_entry_size_bytes",
+)
+
+
+@pytest.fixture
+def run_here(tmp_path, monkeypatch, capsys):
+    """`run` in this process, through the same `main` as `python -m jaxtraj` (a subprocess
+    costs ~4 s of start-up): for the input errors, which end before any computation."""
+
+    def call(*args):
+        monkeypatch.chdir(tmp_path)
+        monkeypatch.setenv("JAXTRAJ_CACHE_DIR", str(tmp_path / "cache"))
+        saved = {name: getattr(jax.config, name) for name in _CACHE_OPTIONS}
+        capsys.readouterr()
+        try:
+            code = _cli.main(list(args))
+        finally:
+            for name, value in saved.items():
+                jax.config.update(name, value)
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+    return call
 
 
 def test_solve_writes_results_that_load_back(tmp_path):
@@ -45,8 +77,8 @@ def test_solve_writes_results_that_load_back(tmp_path):
     assert np.asarray(traj.x).shape[1] == 3
 
 
-def test_problems_lists_the_problems(tmp_path):
-    r = run("problems", tmp_path=tmp_path)
+def test_problems_lists_the_problems(run_here):
+    r = run_here("problems")
     assert r.returncode == 0 and "linear:K" in r.stdout and "file.py:function" in r.stdout
     for name in ("earth-mars", "min-energy", "solar-sail", "attitude", *jt.problems.classic.names()):
         assert name in r.stdout
@@ -121,12 +153,8 @@ def test_solve_runs_a_users_own_problem_from_a_file(tmp_path):
         (("solve", "earth-mars", "--control", "linear:4:2"), "2 channel(s) but `problem` 'earth-mars'"),
     ],
 )
-def test_bad_input_gives_one_line_error(args, message, tmp_path):
-    r = (
-        run(*args, "--out", str(tmp_path / "o"), tmp_path=tmp_path)
-        if args[0] == "solve"
-        else run(*args, tmp_path=tmp_path)
-    )
+def test_bad_input_gives_one_line_error(args, message, tmp_path, run_here):
+    r = run_here(*args, "--out", str(tmp_path / "o")) if args[0] == "solve" else run_here(*args)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
@@ -134,15 +162,15 @@ def test_bad_input_gives_one_line_error(args, message, tmp_path):
     assert not (tmp_path / "o").exists()  # a failed run leaves no (empty) --out folder behind
 
 
-def test_empty_out_is_refused(tmp_path):
-    r = run("solve", "earth-mars", "--out", "", tmp_path=tmp_path)
+def test_empty_out_is_refused(run_here):
+    r = run_here("solve", "earth-mars", "--out", "")
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --out must not be empty", r.stderr
 
 
-def test_unwritable_out(tmp_path):
+def test_unwritable_out(tmp_path, run_here):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    r = run("solve", "earth-mars", "--out", str(blocker / "sub"), tmp_path=tmp_path)
+    r = run_here("solve", "earth-mars", "--out", str(blocker / "sub"))
     assert r.returncode == 2 and "cannot write to --out" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -158,7 +186,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
     assert not target.exists() and list(tmp_path.iterdir()) == []
 
 
-def test_multistart_batch_reports_progress_and_best(tmp_path):
+def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
     out = tmp_path / "batch"
     r = run(
         "solve",
@@ -215,7 +243,7 @@ def test_multistart_batch_reports_progress_and_best(tmp_path):
     (out / "batch" / "chunk_00001.npz").write_bytes(b"")
     cases.append(((*same, "--seed", "2", "--out", str(out), "--resume"), "chunk_00001.npz is damaged"))
     for argv, message in cases:
-        r = run(*argv, tmp_path=tmp_path)
+        r = run_here(*argv)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert lines[-1].startswith("jaxtraj: error:") and message in lines[-1], r.stderr
