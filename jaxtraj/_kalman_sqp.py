@@ -33,7 +33,7 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   so that a collapsed segment gets its multiplier. (The gaps as QP rows too turned the line
   search's steps: +80 % iterations on Earth-Mars case 2, failures on cases 3 and 7;
   docs/history.md. The trust region's QP for problems with inequalities takes them as rows,
-  `direction(knot_rows=True)`, before appendix C: measured on the gallery, RESULTS.md.)
+  `direction(gap_rows=...)`, before appendix C: measured on the gallery, RESULTS.md.)
 * Inequalities (path constraints C(t, x, u) <= 0 on the integration grid, terminal
   inequalities, control-bound rows) the appendix-C way: the rows of an active set become
   observations C_a d = -C after the terminal ones. The active set (`direction`) by
@@ -247,15 +247,16 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ the QP step
 
-    def direction(self, ev: Evaluation, B, lam, knots, dknots, radius=None, knot_rows=False):
+    def direction(self, ev: Evaluation, B, lam, knots, dknots, radius=None, gap_rows=None):
         """The SQP step by the sequential filter: prior -P G_a with P = B^-1, observations
         H d = -E with noise `r_rel` h P h^T, the inequalities by a dual active set; then the
         appendix-C knot ordering. With `radius`, a problem with inequalities bounds the step
         in the QP, |d_i| <= radius (2 np more rows of the active set), so that a direction of
         nearly zero curvature cannot take the step over and leave the inequalities' part of
-        it at round-off once the step is scaled down to the radius. With `knot_rows` (the
-        trust region) the knot gaps t_k - t_{k+1} <= 0 are rows of that QP too (multipliers
-        not returned); appendix C then keeps a share of each gap the QP closes."""
+        it at round-off once the step is scaled down to the radius. `gap_rows` (the
+        trust region: `_bounds.knot_gap_rows`, the rows of the KKT test) are more rows of
+        that QP (multipliers not returned); appendix C then keeps a share of each gap the QP
+        closes."""
         P = _covariance(B)
         prior = -P @ ev.G_a
         hph = jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H)
@@ -276,9 +277,9 @@ class KalmanSQP(AbstractSolver):
                 eye = jnp.eye(d.shape[0], dtype=d.dtype)
                 C = jnp.concatenate([C, jnp.full(2 * d.shape[0], -radius, d.dtype)])
                 C_a = jnp.concatenate([C_a, eye, -eye])
-            if knot_rows:
-                C = jnp.concatenate([C, knots[:-1] - knots[1:]])
-                C_a = jnp.concatenate([C_a, dknots[:-1] - dknots[1:]])
+            if gap_rows is not None:
+                C = jnp.concatenate([C, gap_rows[0]])
+                C_a = jnp.concatenate([C_a, gap_rows[1]])
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)  # before any observation
             r_c = self.r_rel * prior_var + 1e-300
             threshold = 0.01 * self.ctol

@@ -100,8 +100,8 @@ class RK4(AbstractSimulator):
 
         # Rematerialized step: reverse mode (the trust region's forward-over-reverse Hessian)
         # keeps only the state per step and recomputes the step's internals, which XLA compiles
-        # in 0.4x the time at no warm cost (benchmarks/RESULTS.md); without reverse mode the
-        # program is the same.
+        # far faster at no warm cost (benchmarks/RESULTS.md); without reverse mode the program
+        # is the same.
         y1, ys = lax.scan(jax.checkpoint(step, prevent_cse=False), y0, jnp.arange(n, dtype=jnp.float64))
         if dense:
             ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, ys)

@@ -26,11 +26,11 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
 Inequalities (path constraints on the grid, terminal inequalities, control- and state-bound
 rows; `_kkt.inequality_rows`). A problem with any takes its step from the line search's QP
 instead (`KalmanSQP.direction`: the filter's equality step and the dual active set, knot order
-by appendix C; here the gaps t_k - t_{k+1} <= 0 are also rows of that QP, so that its step
-respects every gap at once and appendix C only keeps a share of the gaps it closes: observed one
-at a time, a gap's observation could push the next knot past its neighbour, whose scaling then
-cut every step 20x, STALLED on 4 of 32 random singular-arc starts, 1 with the rows) with the
-trust region as the box |d_i| <= radius in that QP, on the exact
+by appendix C; here the knot gaps of the KKT test, `_bounds.knot_gap_rows`, are also rows of
+that QP, so that its step respects every gap at once and appendix C only keeps a share of the
+gaps it closes: observed one gap at a time, a gap's observation could push the next knot past
+its neighbour, whose scaling then cut every step, RESULTS.md) with the trust region as the box
+|d_i| <= radius in that QP, on the exact
 Hessian of the Lagrangian (with the inequality multipliers) made positive definite by
 `convexify` relative to the rows that are active now (H and the inequality rows with C >=
 -`path_active`: on the QP's feasible set the added term is constant, so where the active set
@@ -67,6 +67,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._bounds import knot_gap_rows
 from ._checks import check_settings
 from ._kalman import sequential_update
 from ._kkt import (
@@ -95,8 +96,8 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
     the multipliers of E, then, for a problem with inequalities, those of its inequality rows
     (`_kkt.inequality_rows`)): forward over reverse autodiff of the plain simulation with RK4
     and terminal equalities only (faster than forward over the forward sensitivities;
-    benchmarks/RESULTS.md; the RK4 step is rematerialized in the reverse pass, which XLA compiles
-    in 0.4x the time), forward over forward otherwise (diffrax runs with forward-mode
+    benchmarks/RESULTS.md; the RK4 step is rematerialized in the reverse pass, which compiles
+    faster), forward over forward otherwise (diffrax runs with forward-mode
     adjoints only; the path rows live on the sensitivity grid)."""
     if isinstance(simulator, RK4) and lam.shape[0] == problem.num_constraints:
 
@@ -298,9 +299,8 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (module docs)
         B = sqp.qp_hessian(W, active_rows(ev, sqp.path_active))
-        # moving knots keep their order as rows of the same QP (module docs)
-        knot_rows = control.time_layout != "fixed"
-        d_new, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, knot_rows=knot_rows)
+        gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
+        d_new, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
         d_max = jnp.max(jnp.abs(d_new))
         d_new = d_new * jnp.minimum(1.0, state.radius / jnp.maximum(d_max, 1e-300))
         lam = sqp.release_inactive(ev, state.lam, lam_qp)
