@@ -1,5 +1,6 @@
-"""End-to-end tests of the command line: runs that solve in a subprocess (`python -m jaxtraj`),
-input errors, which end before any computation, in this process (`run_here`)."""
+"""End-to-end tests of the command line: one full run in a subprocess (`python -m jaxtraj`: the
+entry point, the figures, the files that load back), the others in this process through the
+same `main` (`run_here`; a subprocess costs ~4 s of start-up and compiles anew)."""
 
 import json
 import os
@@ -35,7 +36,7 @@ _CACHE_OPTIONS = (
 @pytest.fixture
 def run_here(tmp_path, monkeypatch, capsys):
     """`run` in this process, through the same `main` as `python -m jaxtraj` (a subprocess
-    costs ~4 s of start-up): for the input errors, which end before any computation."""
+    costs ~4 s of start-up); the command changes nothing else of the process's state."""
 
     def call(*args):
         monkeypatch.chdir(tmp_path)
@@ -84,9 +85,9 @@ def test_problems_lists_the_problems(run_here):
         assert name in r.stdout
 
 
-def test_solve_runs_a_gallery_problem(tmp_path):
+def test_solve_runs_a_gallery_problem(tmp_path, run_here):
     out = tmp_path / "max-range"
-    r = run("solve", "max-range", "--steps", "40", "--out", str(out), tmp_path=tmp_path)
+    r = run_here("solve", "max-range", "--steps", "40", "--out", str(out))
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
     # u = +1 then -1 over [0, 1] from rest: x(1) = 1/4 (the objective is -x(1))
@@ -116,19 +117,19 @@ def broken():
 """
 
 
-def test_solve_runs_a_users_own_problem_from_a_file(tmp_path):
+def test_solve_runs_a_users_own_problem_from_a_file(tmp_path, run_here):
     (tmp_path / "mine.py").write_text(USER_PROBLEM)
     out = tmp_path / "plane"
-    r = run("solve", "mine.py:plane", "--control", "linear:4:2", "--steps", "20", "--out", str(out), tmp_path=tmp_path)
+    r = run_here("solve", "mine.py:plane", "--control", "linear:4:2", "--steps", "20", "--out", str(out))
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and summary["problem"] == "plane"
     assert abs(summary["objective"] - 30.0) < 1e-8
     assert summary["inputs"]["control"] == "PiecewiseLinear(segments=4, channels=2)"
     assert (out / "solution.png").exists()
-    r = run("solve", "mine.py:broken", "--out", str(out), tmp_path=tmp_path)
+    r = run_here("solve", "mine.py:broken", "--out", str(out))
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:broken raised RuntimeError: bad model"
-    r = run("solve", "mine.py:plane", "--tf", "-2", "--out", str(out), tmp_path=tmp_path)
+    r = run_here("solve", "mine.py:plane", "--tf", "-2", "--out", str(out))
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --tf: `tf` must be a finite number > 0; got -2.0."
 
 
@@ -188,7 +189,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
 
 def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
     out = tmp_path / "batch"
-    r = run(
+    r = run_here(
         "solve",
         "min-energy",
         "--control",
@@ -202,7 +203,6 @@ def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
         "--no-plot",
         "--out",
         str(out),
-        tmp_path=tmp_path,
     )
     assert r.returncode == 0, r.stderr
     assert "solve_batch: 3/3 starts" in r.stderr and "3 / 3 starts successful" in r.stdout
@@ -212,7 +212,7 @@ def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
         "chunk_00002.npz",
         "manifest.json",
     ]
-    again = run(
+    again = run_here(
         "solve",
         "min-energy",
         "--control",
@@ -227,7 +227,6 @@ def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
         "--out",
         str(out),
         "--resume",
-        tmp_path=tmp_path,
     )
     assert again.returncode == 0 and "3/3 chunk(s) already done" in again.stderr, again.stderr
     assert abs(json.loads((out / "summary.json").read_text())["objective"] - 6.0) < 1e-6
@@ -250,9 +249,9 @@ def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
 
 
 @pytest.mark.parametrize("solver", ["sqp", "sqp-tr"])
-def test_solve_with_kalman_sqp(tmp_path, solver):
+def test_solve_with_kalman_sqp(tmp_path, run_here, solver):
     out = tmp_path / "sqp"
-    r = run(
+    r = run_here(
         "solve",
         "min-energy",
         "--control",
@@ -264,7 +263,6 @@ def test_solve_with_kalman_sqp(tmp_path, solver):
         "--no-plot",
         "--out",
         str(out),
-        tmp_path=tmp_path,
     )
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
@@ -272,9 +270,9 @@ def test_solve_with_kalman_sqp(tmp_path, solver):
     assert abs(summary["objective"] - 6.0) < 1e-10 and summary["max_constraint_error"] < 1e-10
 
 
-def test_monte_carlo_after_a_solve(tmp_path):
+def test_monte_carlo_after_a_solve(tmp_path, run_here):
     out = tmp_path / "mc"
-    r = run(
+    r = run_here(
         "solve",
         "earth-mars",
         "--case",
@@ -288,22 +286,21 @@ def test_monte_carlo_after_a_solve(tmp_path):
         "300",
         "--out",
         str(out),
-        tmp_path=tmp_path,
     )
     assert r.returncode == 0, r.stderr
     mc = json.loads((out / "summary.json").read_text())["monte_carlo"]
     assert mc["runs"] == 300 and mc["open loop"]["failed"] == 0 and mc["closed loop"]["failed"] == 0
     assert mc["trace_ratio"] < 0.1  # the feedback shrinks the terminal dispersion (~0.01 on case 5)
-    bad = run("solve", "min-energy", "--monte-carlo", "10", "--out", str(tmp_path / "x"), tmp_path=tmp_path)
+    bad = run_here("solve", "min-energy", "--monte-carlo", "10", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "earth-mars only" in bad.stderr
 
 
-def test_a_locked_out_folder_is_refused(tmp_path):
+def test_a_locked_out_folder_is_refused(tmp_path, run_here):
     """Two runs cannot write one folder at once: while another run holds --out, the command
     stops at once with a one-line error."""
     out = tmp_path / "busy"
     with jt.io.folder_lock(str(out)):
-        r = run("solve", "earth-mars", "--out", str(out), tmp_path=tmp_path)
+        r = run_here("solve", "earth-mars", "--out", str(out))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert (
         r.stderr.strip()

@@ -1,6 +1,7 @@
 """dx(tf)/da three ways: forward-mode autodiff, the unit-solution method of seed 000
 appendix A, and central finite differences."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -128,3 +129,24 @@ def test_forward_equals_naive_jacfwd_of_the_simulation(case):
     J = jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1]
     J_dense = jax.jacfwd(lambda a: jt.simulate(prob, ctrl, a, simulator=sim).x[-1])(a0)
     np.testing.assert_allclose(J, J_dense, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "ctrl",
+    [
+        jt.controls.FixedFinalTime(jt.controls.PiecewiseLinear(3), 2.0),
+        jt.controls.FreeInitialState(jt.controls.PiecewiseLinear(3), (1,), [0.5]),
+        jt.controls.SaturatedSpline(3, 2, -1.0, 1.0, free_durations=False),
+        jt.controls.FixedFinalTime(jt.controls.SaturatedSpline(3, 1, -1.0, 1.0, free_durations=False), 2.0),
+    ],
+    ids=repr,
+)
+def test_affine_basis_inside_a_jit_equals_the_basis_outside(ctrl):
+    """A control's arrays (a fixed final time, free start values, spline limits) are traced
+    inside a jit; the segment Jacobian does not use them, so the reduced-tangent basis is
+    found there too, from one compiled program (not op by op, which fails on them)."""
+    a = jnp.linspace(0.2, 0.9, ctrl.num_params)
+    outside = _affine_segment_basis(ctrl, a)
+    inside = eqx.filter_jit(_affine_segment_basis)(ctrl, a)
+    assert outside is not None and inside is not None
+    np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))

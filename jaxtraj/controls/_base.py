@@ -176,6 +176,8 @@ def run_concretely(fn, control, *args) -> np.ndarray:
     control holding traced arrays (limits under a jit) is evaluated op by op, which works
     unless `fn` uses those arrays (then a `jax.errors.JAXTypeError`)."""
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
+        control = _concrete_stand_in(fn, control, args)
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
         with jax.ensure_compile_time_eval():
             return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
     # the compiled program takes the control's arrays as inputs: it serves every control of
@@ -191,6 +193,51 @@ def run_concretely(fn, control, *args) -> np.ndarray:
             _COMPILED[key] = compiled
     with jax.ensure_compile_time_eval():
         return np.asarray(compiled(control, *args))
+
+
+def _concrete_stand_in(fn, control, args):
+    """`control` with its traced arrays replaced by zeros where `fn(control, *args)` provably
+    does not use them (a fixed final time or free start values inserted into a vector whose
+    Jacobian is taken, a family's limits that act only inside `local_control`), so that it
+    runs as one compiled program instead of op by op; `control` unchanged otherwise."""
+    leaves, treedef = jax.tree.flatten(control)
+    traced = [isinstance(leaf, jax.core.Tracer) for leaf in leaves]
+    stand_in = [np.zeros(x.shape, x.dtype) if t else x for x, t in zip(leaves, traced)]
+    dynamic = [i for i, t in enumerate(traced) if t]
+
+    def on_arrays(arrays, *args):
+        full = list(stand_in)
+        for i, x in zip(dynamic, arrays):
+            full[i] = x
+        return fn(jax.tree.unflatten(treedef, full), *args)
+
+    try:
+        closed = jax.make_jaxpr(on_arrays)([stand_in[i] for i in dynamic], *args)
+    except jax.errors.JAXTypeError:  # Python control flow on a traced array: op by op, as before
+        return control
+    used = _used_inputs(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
+    if any(used[: len(dynamic)]):
+        return control
+    return jax.tree.unflatten(treedef, stand_in)
+
+
+def _is_var(v):
+    return not hasattr(v, "val")  # a jaxpr variable, not a literal constant
+
+
+def _used_inputs(jaxpr, used_outputs):
+    """Which inputs of `jaxpr` its used outputs depend on: a backward pass over the equations,
+    into nested `jit` calls, every input of any other equation with a used output counted
+    (conservative: a False is certain)."""
+    used = {v for v, u in zip(jaxpr.outvars, used_outputs) if u and _is_var(v)}
+    for eqn in reversed(jaxpr.eqns):
+        outs = [_is_var(v) and v in used for v in eqn.outvars]
+        if not any(outs):
+            continue
+        inner = eqn.params.get("jaxpr") if eqn.primitive.name in ("jit", "pjit") else None
+        need = _used_inputs(inner.jaxpr, outs) if inner is not None else [True] * len(eqn.invars)
+        used.update(v for v, n in zip(eqn.invars, need) if n and _is_var(v))
+    return [v in used for v in jaxpr.invars]
 
 
 def saturates_within(control: AbstractControl, lower=None, upper=None) -> bool:

@@ -7,8 +7,6 @@ import math
 import time
 
 import numpy as np
-import scipy.integrate
-import scipy.optimize
 
 #: Days per normalized time unit (1 year = 2 pi units).
 DAYS_PER_UNIT = 365.25 / (2.0 * math.pi)
@@ -85,6 +83,9 @@ class IndirectResult:
 def shoot(radius, a0, mu, tf_guess, pitch_guesses_deg, rtol, dense_points) -> IndirectResult:
     """Solve the shooting equations for a transfer to the circular orbit `radius` (the
     arguments checked by `solar_sail.solve_indirect`, which documents them)."""
+    import scipy.integrate  # here, not at import: SciPy's import is ~0.4 s of `import jaxtraj`
+    import scipy.optimize
+
     start = time.perf_counter()
     v_f = math.sqrt(mu / radius)
     rhs = _state_costate_rhs(a0, mu)
