@@ -89,7 +89,7 @@ import optax
 from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kkt import multipliers, parameter_scale
-from ._sensitivity import Evaluation, evaluate_restricted
+from ._sensitivity import Evaluation, evaluate_jitted
 from ._solution import History, Solution
 from ._status import Status, diverged, failed
 from .controls import saturates_within, value_bounds
@@ -295,7 +295,7 @@ def al_value(problem, control, simulator, box: ParameterBox, m: Multipliers, met
     def evaluate(z, dyn):
         problem, control, simulator, box, m, metric = eqx.combine(dyn, static)
         x = metric.to_a(z)
-        ev = evaluate_restricted(problem, control, box.project(x), simulator, method)
+        ev = evaluate_jitted(problem, control, box.project(x), simulator, method)
         value, grad = augmented_lagrangian(ev, m)
         ok = (ev.status == Status.SUCCESS) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
         return jnp.where(ok, value, jnp.inf), jnp.where(ok, metric.grad_z(box.reduce(x, grad)), 0.0)
@@ -456,7 +456,7 @@ class AugmentedLagrangian(AbstractSolver):
         return (self._optimizer().init(z), self._linesearch().init(z))
 
     def _evaluate(self, problem, control, a, simulator):
-        return evaluate_restricted(problem, control, a, simulator, self.method)
+        return evaluate_jitted(problem, control, a, simulator, self.method)
 
     def _initial_multipliers(self, ev: Evaluation):
         C, C_a = _path_arrays(ev)

@@ -72,7 +72,7 @@ from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import constraint_rows, inequality_rows, stationarity
-from ._sensitivity import Evaluation, evaluate_restricted, unevaluated
+from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
 from ._solution import History, Solution
 from ._status import Status
 
@@ -308,7 +308,7 @@ class KalmanSearch(AbstractSolver):
         f = jnp.float64
         return _State(
             a=a0,
-            ev=unevaluated(lambda a: evaluate_restricted(problem, control, a, simulator, self.method), a0),
+            ev=unevaluated(lambda a: evaluate_jitted(problem, control, a, simulator, self.method), a0),
             rho=jnp.asarray(self.rho, f),
             beta=jnp.asarray(self.beta, f),
             beta_p=jnp.asarray(self.beta_p, f),
@@ -341,7 +341,7 @@ class KalmanSearch(AbstractSolver):
         # integrate the candidate (one integration with sensitivities; the first step's is
         # the start, accepted when finite, with the phase its errors give)
         first = state.num_steps == 0
-        cand = evaluate_restricted(problem, control, a + da, simulator, self.method)
+        cand = evaluate_jitted(problem, control, a + da, simulator, self.method)
         finite = cand.status == Status.SUCCESS
         # the checks on the error vector [E; max(C, 0)], its models on the raw values
         y, y_star, y_lin = _values(ev), _values(cand), _values(ev) + constraint_rows(ev) @ da

@@ -84,7 +84,7 @@ from ._kkt import (
     with_knot_gaps,
 )
 from ._line_search import LineSearch
-from ._sensitivity import Evaluation, evaluate_restricted, unevaluated
+from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
 from ._solution import Solution
 from ._trust_region import TrustRegion
 
@@ -212,7 +212,7 @@ class KalmanSQP(AbstractSolver):
     # ------------------------------------------------------------------ evaluations
 
     def restricted(self, problem, control, a, simulator):
-        return evaluate_restricted(problem, control, a, simulator, self.method)
+        return evaluate_jitted(problem, control, a, simulator, self.method)
 
     def qp_hessian(self, W, H):
         """The QP's positive definite B from an exact Hessian of the Lagrangian W (`convexify`)."""

@@ -83,7 +83,7 @@ from ._kkt import (
     stationarity,
     with_knot_gaps,
 )
-from ._sensitivity import Evaluation, evaluate_restricted
+from ._sensitivity import Evaluation, evaluate_jitted
 from ._simulate import RK4, final_state
 from ._solution import History
 from ._status import Status, failed
@@ -110,7 +110,7 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
     else:
 
         def gradient(a):
-            return lagrangian_gradient(evaluate_restricted(problem, control, a, simulator, "forward"), lam)
+            return lagrangian_gradient(evaluate_jitted(problem, control, a, simulator, "forward"), lam)
 
         W = jax.jacfwd(gradient)(a)
     W = 0.5 * (W + W.T)
@@ -321,7 +321,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # one integration: the candidate (the first step's is the start)
     first = state.num_steps == 0
     total = d + jnp.where(fresh, 0.0, state.d_soc)
-    cand = evaluate_restricted(problem, control, a + total, simulator, "forward")
+    cand = evaluate_jitted(problem, control, a + total, simulator, "forward")
     # the candidate's multipliers: the QP's with inequalities (least squares at the start)
     if with_rows:
         lam_c = lax.cond(first, lambda: _multipliers(cand, sqp.path_active), lambda: lam_qp)
