@@ -118,7 +118,7 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
     return d, P, active
 
 
-def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter):
+def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None):
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
 
@@ -136,7 +136,8 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     partial step only: it replaces a working row instead of being skipped, so the active set
     cannot cycle between grid neighbours; so does any row once W holds n - m rows (n
     parameters, m rows of `H`), which the noise floor of the filter (`r`) could otherwise
-    let pass as independent. Every round either adds a row or strictly raises
+    let pass as independent (`num_equalities`, default m, may count fewer: rows of `H` that
+    are zeros). Every round either adds a row or strictly raises
     the dual objective (the method's finite convergence); `max_iter` bounds the rounds.
 
     A violated row that no step can meet (dependent on W, and no multiplier of W blocks:
@@ -147,6 +148,7 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     or `max_iter` ended the rounds. The caller filters W's rows to get the step itself.
     """
     m, n = H.shape[0], d.shape[0]
+    rank_left = n - (m if num_equalities is None else num_equalities)
 
     def working_rows(W):
         # W's rows gathered (in order) into n slots: rows independent of E's and of each
@@ -170,7 +172,7 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
         idx, valid = working_rows(W)
         z = covariance(idx, valid) @ c
         zc = c @ z
-        independent = (zc > dependence * prior_var[p]) & (jnp.sum(W) < n - m)  # rank: |W| <= n - m
+        independent = (zc > dependence * prior_var[p]) & (jnp.sum(W) < rank_left)  # rank: |W| <= n - m
         A = jnp.concatenate([H, jnp.where(valid[:, None], C_a[idx], 0.0)])
         rho = jnp.zeros_like(C).at[idx].add(jnp.where(valid, jnp.linalg.lstsq(A.T, B @ z - c)[0][m:], 0.0))
         ratio = jnp.where(W & (rho < 0), u / jnp.where(rho < 0, -rho, 1.0), jnp.inf)
@@ -199,13 +201,13 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
 
-def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter):
+def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
     filtered as observations C_a d = -C (noise `r`), with one refinement pass (the same
     update with the first estimate as prior mean). Returns `(d, P, W, u, excess)`: the step,
     its covariance, and `dual_active_set`'s working set, multipliers and excess."""
-    W, u, excess = dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter)
+    W, u, excess = dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities)
     d1, _, _ = sequential_update(d, P, C_a, -C, r, active=W)
     d1, P1, _ = sequential_update(d1, P, C_a, -C, r, active=W)
     return d1, P1, W, u, excess

@@ -285,12 +285,6 @@ class KalmanSQP(AbstractSolver):
             threshold = 0.01 * self.ctol
             max_rounds = 4 * d.shape[0] + 20
 
-            def step_on(d_eq, P1, B, H):
-                d, P2, active, _, excess = inequality_step(
-                    d_eq, P1, B, H, C, C_a, r_c, prior_var, self.path_dependence, threshold, max_rounds
-                )
-                return d, P2, active, jnp.max(excess[:n_rows])
-
             # Elastic mode. If the linearized constraints are inconsistent (a row, not a step
             # bound, violated by more than `ctol` that neither E's rows nor the working ones
             # let the step meet; or one that E's rows alone pin, its variance left by them
@@ -304,14 +298,38 @@ class KalmanSQP(AbstractSolver):
             # B + H^T R^-1 H (R the equalities' noise) and it has no equality rows.
             pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
-            hard = step_on(d, P1, B, ev.H)
+            r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
+            B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
 
-            def elastic_step():
-                r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
-                B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
-                return step_on(*self._equality_step(prior, P, ev, r_soft), B_soft, ev.H[:0])[:3]
+            # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
+            # so that the dual active set is compiled once (issue 21); the elastic round's
+            # equality rows are zeros, and it counts none of them in the rank of the working set.
+            def round_(carry):
+                k, _ = carry
+                elastic = k == 1
+                d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r))
+                d, P2, active, _, excess = inequality_step(
+                    d_eq,
+                    P_eq,
+                    jnp.where(elastic, B_soft, B),
+                    jnp.where(elastic, 0.0, ev.H),
+                    C,
+                    C_a,
+                    r_c,
+                    prior_var,
+                    self.path_dependence,
+                    threshold,
+                    max_rounds,
+                    num_equalities=jnp.where(elastic, 0, m),
+                )
+                return k + 1, (d, P2, active, jnp.max(excess[:n_rows]))
 
-            d, P1, active = lax.cond(pinned_violated | (hard[3] > self.ctol), elastic_step, lambda: hard[:3])
+            def again(carry):
+                k, (*_, excess) = carry
+                return (k == 0) | ((k == 1) & (pinned_violated | (excess > self.ctol)))
+
+            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.zeros((), d.dtype))
+            _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
             active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t, collapse=self.path_active)
         # multipliers of [E; active C] from stationarity (nu >= 0, zero off the active set)

@@ -93,3 +93,36 @@ def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours):
     residual = B @ d + g + C_a.T @ u
     lam_E = np.linalg.lstsq(H.T, -residual, rcond=None)[0] if me else np.zeros(0)
     assert np.max(np.abs(residual + H.T @ lam_E)) <= 1e-7 * (1.0 + np.max(np.abs(g)) + np.max(np.abs(u), initial=0.0))
+
+
+@functools.cache
+def _steps_without_equalities(n, me, mi):
+    """`inequality_step` with no equality rows, and with `me` rows of zeros counted as none
+    (`num_equalities=0`: KalmanSQP's elastic round, compiled with the hard one's shapes)."""
+
+    @jax.jit
+    def steps(B, g, H, C, C_a):
+        P = jnp.linalg.inv(B)
+        P = 0.5 * (P + P.T)
+        prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
+        args = (C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20)
+        none = inequality_step(-P @ g, P, B, H[:0], *args)
+        zeros = inequality_step(-P @ g, P, B, jnp.zeros_like(H), *args, num_equalities=0)
+        return none, zeros
+
+    return steps
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), n=st.sampled_from([3, 7]), mi=st.sampled_from([4, 13]))
+def test_zero_equality_rows_counted_as_none_are_no_rows(seed, n, mi):
+    """The elastic round's QP (zero equality rows, none counted) against the same QP without
+    the rows and against qpOASES: the same step, working set and multipliers."""
+    B, g, H, _, C, C_a = _random_qp(seed, n, 2, mi, True)
+    none, zeros = _steps_without_equalities(n, 2, mi)(*(jnp.asarray(v) for v in (B, g, H, C, C_a)))
+    x = _qpoases(B, g, H[:0], np.zeros(0), C, C_a)
+    scale = 1.0 + np.max(np.abs(x))
+    assert np.max(np.abs(np.asarray(zeros[0]) - x)) <= 1e-6 * scale
+    np.testing.assert_array_equal(np.asarray(zeros[2]), np.asarray(none[2]))  # working set
+    np.testing.assert_allclose(np.asarray(zeros[0]), np.asarray(none[0]), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(np.asarray(zeros[3]), np.asarray(none[3]), rtol=1e-9, atol=1e-12)
