@@ -173,8 +173,10 @@ def run_concretely(fn, control, *args) -> np.ndarray:
     (e.g. a constant `a` closed over by a jitted function): one program per family and shape,
     lowered and compiled apart from the enclosing trace. (Run op by op under
     `jax.ensure_compile_time_eval`, every jnp operation compiled a program of its own.) A
-    control holding traced arrays (limits under a jit) is evaluated op by op, which works
-    unless `fn` uses those arrays (then a `jax.errors.JAXTypeError`)."""
+    control holding traced arrays (under a jit: a fixed final time, free start values, a
+    spline's limits) runs with zeros in their place where `fn` provably does not use them
+    (`_concrete_stand_in`), otherwise op by op, which fails where `fn` uses them (a
+    `jax.errors.JAXTypeError`)."""
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
         control = _concrete_stand_in(fn, control, args)
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
