@@ -61,11 +61,16 @@ def test_entry_points_refuse_bad_parameter_vectors_by_name(entry, a):
         assert "`a`" in str(e), str(e)
 
 
-@settings(max_examples=25, deadline=None)
-@given(
-    steps=st.one_of(st.integers(-3, 3), st.floats(allow_nan=True), st.sampled_from(["5", None, np.int64(4), True])),
-    max_steps=st.one_of(st.integers(-3, 3), st.floats(allow_nan=True), st.sampled_from(["5", None, np.int64(4), True])),
+# Bad values of every kind; one valid value each (4, also as np.int64), so that the valid
+# draws compile one solver program and the test's time does not vary with the draws (it was
+# 0-33 s with every valid pair of 1..3 a program of its own).
+_SETTING = st.one_of(
+    st.integers(-3, 0), st.just(4), st.floats(allow_nan=True), st.sampled_from(["5", None, np.int64(4), True])
 )
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(steps=_SETTING, max_steps=_SETTING)
 def test_settings_are_refused_by_name(steps, max_steps):
     try:
         sim = jt.RK4(steps)
