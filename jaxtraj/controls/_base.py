@@ -178,10 +178,11 @@ def run_concretely(fn, control, *args) -> np.ndarray:
     (`_concrete_stand_in`), otherwise op by op, which fails where `fn` uses them (a
     `jax.errors.JAXTypeError`)."""
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
-        control = _concrete_stand_in(fn, control, args)
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
-        with jax.ensure_compile_time_eval():
-            return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
+        stand_in = _concrete_stand_in(fn, control, args)
+        if stand_in is None:
+            with jax.ensure_compile_time_eval():
+                return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
+        control = stand_in
     # the compiled program takes the control's arrays as inputs: it serves every control of
     # the same structure and array shapes (e.g. another fixed final time)
     arrays, structure = eqx.partition(control, eqx.is_array)
@@ -198,10 +199,12 @@ def run_concretely(fn, control, *args) -> np.ndarray:
 
 
 def _concrete_stand_in(fn, control, args):
-    """`control` with its traced arrays replaced by zeros where `fn(control, *args)` provably
+    """`control` with its traced arrays replaced by zeros if `fn(control, *args)` provably
     does not use them (a fixed final time or free start values inserted into a vector whose
     Jacobian is taken, a family's limits that act only inside `local_control`), so that it
-    runs as one compiled program instead of op by op; `control` unchanged otherwise."""
+    runs as one compiled program instead of op by op; None otherwise. (JAX's own dead-code
+    pass, `partial_eval.dce_jaxpr`, is private API; `_used_inputs` reads only the documented
+    jaxpr structure.)"""
     leaves, treedef = jax.tree.flatten(control)
     traced = [isinstance(leaf, jax.core.Tracer) for leaf in leaves]
     stand_in = [np.zeros(x.shape, x.dtype) if t else x for x, t in zip(leaves, traced)]
@@ -216,11 +219,9 @@ def _concrete_stand_in(fn, control, args):
     try:
         closed = jax.make_jaxpr(on_arrays)([stand_in[i] for i in dynamic], *args)
     except jax.errors.JAXTypeError:  # Python control flow on a traced array: op by op, as before
-        return control
+        return None
     used = _used_inputs(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
-    if any(used[: len(dynamic)]):
-        return control
-    return jax.tree.unflatten(treedef, stand_in)
+    return None if any(used[: len(dynamic)]) else jax.tree.unflatten(treedef, stand_in)
 
 
 def _is_var(v):
