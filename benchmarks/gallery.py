@@ -117,6 +117,9 @@ def _run_baseline(fn):
 SOLVERS = {
     "default": _run_jaxtraj(None),
     "trust-region": _run_jaxtraj(jt.KalmanSQP(hessian="exact", globalization="trust-region")),
+    "trust-region-feasibility-first": _run_jaxtraj(
+        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=True))
+    ),
     "kalman-search": _run_jaxtraj(jt.KalmanSearch()),
     "augmented-lagrangian": _run_jaxtraj(jt.AugmentedLagrangian()),
     "slsqp": _run_baseline(solve_slsqp),

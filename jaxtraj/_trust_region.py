@@ -16,6 +16,10 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
   negative curvature the step runs to the boundary along it instead of being convexified away.
   This is what the line search cannot do: near a saddle of the reduced problem (Earth-Mars
   case 2) the line-search SQP, with its eigenvalues made positive, crawls.
+* feasibility first (`TrustRegion(feasibility_first=True)`): while v is cut (the linearized
+  constraints lie beyond zeta x radius), d = v alone: the filter's step towards the
+  linearized constraints, before the objective has a say (the step of a feasibility
+  restoration, on the same merit and ratio test).
 * free knot times: a gap t_{i+1} - t_i may shrink to no less than `gap_floor` of its length in
   one step; a step that would shrink it further observes the gap's change at that bound, as one
   more row of the filter, one row per round, rows added until none is violated. This is appendix
@@ -168,9 +172,10 @@ def subproblem(grad, W, V, radius):
     return V @ jnp.where(hard, u + tau * q0, u)
 
 
-def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor):
+def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor, feasibility_first=False):
     """The composite step d = v + u (module docs), with the knot gaps kept above `gap_floor`
-    of their length by observations added one per round."""
+    of their length by observations added one per round; with `feasibility_first`, the normal
+    step alone while it is cut to `zeta` x radius."""
     g, E, H = ev.G_a, ev.E, ev.H
     gaps = knots[1:] - knots[:-1]
     R = dknots[1:] - dknots[:-1]  # d(gap)/da
@@ -185,7 +190,8 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor)
         v_norm = jnp.linalg.norm(v)
         v = v * jnp.minimum(1.0, zeta * radius / jnp.maximum(v_norm, 1e-300))
         rest = jnp.sqrt(jnp.maximum(radius**2 - v @ v, 0.0))
-        return v + subproblem(g + W @ v, W, V, rest)
+        d = v + subproblem(g + W @ v, W, V, rest)
+        return jnp.where(v_norm > zeta * radius, v, d) if feasibility_first else d
 
     def violations(d, active):
         short = movable & ~active & (gaps + R @ d < gap_floor * gaps)
@@ -307,7 +313,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         size = lambda d: jnp.max(jnp.abs(d))
     else:
         B = W
-        d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor)
+        d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, tr.feasibility_first)
         lam_qp = lam = state.lam
         size = jnp.linalg.norm
     # the penalty carries over unless it ran past `mu_max` (as the line search's)
@@ -434,6 +440,13 @@ class TrustRegion(eqx.Module):
       least-squares multipliers of 1e12 and a penalty of 1e16 that, kept, rejects every full
       step near the optimum for the constraints' curvature (the minimum-time double
       integrator from a perturbed start: 500 steps at 2.14 instead of SUCCESS at 2).
+    - `feasibility_first`: while the normal step is cut (the linearized constraints are out of
+      the radius's reach), take it alone, without the tangential step (False). Problems
+      without inequality rows (with them the step is the QP's). From starts far from feasible
+      this keeps the objective from steering the iterates into a region where the violation
+      stalls (Zermelo's ship, 32 random starts: 15 -> 26 at the reference; minimum time runs
+      tf towards 0 while the target is still far); from good starts it costs iterations
+      (Earth-Mars cases 1 and 2: 10 -> 12 and 9 -> 18). benchmarks/RESULTS.md.
     """
 
     radius: float = 1.0
@@ -441,6 +454,7 @@ class TrustRegion(eqx.Module):
     gap_floor: float = 0.5
     eta: float = 1e-4
     mu_max: float = 1e8
+    feasibility_first: bool = False
 
     def __check_init__(self):
         checks = {
@@ -449,6 +463,7 @@ class TrustRegion(eqx.Module):
             "gap_floor": lambda: 0 < self.gap_floor < 1,
             "eta": lambda: 0 < self.eta < 0.25,
             "mu_max": lambda: self.mu_max > 0,
+            "feasibility_first": lambda: isinstance(self.feasibility_first, bool),
         }
         check_settings("TrustRegion", self, checks)
 

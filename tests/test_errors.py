@@ -187,10 +187,11 @@ def test_complex_parameters_are_refused():
         lambda: jt.AugmentedLagrangian(gtol=None),
         lambda: jt.LineSearch(armijo="small"),
         lambda: jt.TrustRegion(eta=[1e-4]),
+        lambda: jt.TrustRegion(feasibility_first="yes"),
     ],
 )
 def test_a_setting_of_the_wrong_type_names_the_field(make):
-    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta)`"):
+    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta|feasibility_first)`"):
         make()
 
 
