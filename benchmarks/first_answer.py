@@ -13,7 +13,15 @@ free tf, written out again in CasADi symbols (no jaxtraj code), and solves it fr
 start. Its "first answer" is the build (symbols, `nlpsol`) plus the first solve; the table
 gives each solver's first call as a ratio to it.
 
-Run: `python benchmarks/first_answer.py [--case 4] [--repeats 3]`.
+With `--problem NAME` (a `jt.problems.classic` gallery entry, e.g. `bryson-denham`: path
+constraints, bounds, running costs) the same columns for that problem from its naive start with
+the gallery's RK4(40), without a CasADi row (its NLP is written out for Earth-Mars only).
+
+`--pieces` adds the default solver's kernels compiled apart (evaluation, exact Hessian, QP
+step): what each costs of the whole program.
+
+Run: `python benchmarks/first_answer.py [--case 4 | --problem bryson-denham] [--repeats 3]
+[--pieces]`.
 """
 
 import argparse
@@ -27,6 +35,8 @@ import numpy as np
 
 import jaxtraj as jt
 from jaxtraj._driver import run
+from jaxtraj._kkt import least_squares_multipliers
+from jaxtraj._sensitivity import evaluate_restricted
 from jaxtraj.problems import earth_mars
 
 jax.config.update("jax_enable_compilation_cache", False)
@@ -59,6 +69,32 @@ def first_call(solver, problem, control, a0, simulator):
     jax.block_until_ready(sol.params)
     t3 = time.perf_counter()
     return t1 - t0, t2 - t1, t3 - t2, len(lowered.as_text().splitlines()), sol
+
+
+def pieces(problem, control, a0, simulator):
+    """Trace + lower and XLA compile of the default solver's kernels, each as a program of its
+    own: the evaluation with forward sensitivities, the exact Hessian of the Lagrangian
+    (`KalmanSQP.exact_hessian`) and the QP step (`KalmanSQP.direction`, with B = I)."""
+    sqp = jt.KalmanSQP()
+    ev = evaluate_restricted(problem, control, a0, simulator, "forward")
+    lam = least_squares_multipliers(ev, sqp.path_active)
+    kernels = {
+        "evaluation (forward)": (lambda a: evaluate_restricted(problem, control, a, simulator, "forward"), (a0,)),
+        "exact Hessian": (lambda a, lam: sqp.exact_hessian(problem, control, a, simulator, lam)[1], (a0, lam)),
+        "QP step": (
+            lambda ev, B, lam, a: sqp.direction(ev, B, lam, control.knots(a), jax.jacfwd(control.knots)(a), 0.5),
+            (ev, np.eye(a0.shape[0]), lam, a0),
+        ),
+    }
+    print("\n| kernel of the default solver | trace + lower (s) | XLA compile (s) | HLO lines |\n|---|---:|---:|---:|")
+    for name, (fn, args) in kernels.items():
+        jax.clear_caches()
+        t0 = time.perf_counter()
+        lowered = jax.jit(fn).lower(*args)
+        t1 = time.perf_counter()
+        lowered.compile()
+        t2 = time.perf_counter()
+        print(f"| {name} | {t1 - t0:.2f} | {t2 - t1:.2f} | {len(lowered.as_text().splitlines())} |", flush=True)
 
 
 def warm(solver, problem, control, a0, simulator, repeats):
@@ -125,17 +161,25 @@ def casadi_single_shooting(control, a0, steps):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", type=int, default=4, choices=[4, 5])  # the cases with equally spaced nodes
+    parser.add_argument("--problem", choices=jt.problems.classic.names(), help="a gallery problem instead")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--pieces", action="store_true", help="also the default solver's kernels, compiled apart")
     args = parser.parse_args()
-    problem, control, a0 = earth_mars.thesis_case(args.case)
-    simulator = jt.RK4(100)
+    if args.problem:
+        entry = jt.problems.classic.get(args.problem)
+        problem, control, a0, simulator = entry.problem, entry.control, entry.start, jt.RK4(40)
+        title = f"{args.problem} from its naive start, RK4(40)"
+    else:
+        problem, control, a0 = earth_mars.thesis_case(args.case)
+        simulator = jt.RK4(100)
+        title = f"Earth-Mars case {args.case}, RK4(100)"
     print(
-        f"# Earth-Mars case {args.case}, RK4(100), first call of jt.solve per solver (caches cleared); "
+        f"# {title}, first call of jt.solve per solver (caches cleared); "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}; "
         f"command: python {' '.join(sys.argv)}; {time.strftime('%Y-%m-%d')}"
     )
     reference = None
-    if HAVE_CASADI:
+    if HAVE_CASADI and not args.problem:
         build, solve, tf, status = casadi_single_shooting(control, a0, simulator.steps)
         reference = build + solve
         print(
@@ -145,7 +189,7 @@ def main():
     print()
     print(
         "| solver | first call (s) | trace + lower (s) | XLA compile (s) | first run (s) | HLO lines | warm (s) "
-        "| first / CasADi | status | tf |"
+        "| first / CasADi | status | objective |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|---|")
     if reference is not None:
@@ -160,9 +204,11 @@ def main():
         ratio = f"{total / reference:.2f}" if reference else ""
         print(
             f"| {name} | {total:.2f} | {lower:.2f} | {comp:.2f} | {first:.3f} | {lines} | {w:.3f} | {ratio} "
-            f"| {jt.status_name(sol.status)} | {float(sol.tf):.8f} |",
+            f"| {jt.status_name(sol.status)} | {float(sol.objective):.8f} |",
             flush=True,
         )
+    if args.pieces:
+        pieces(problem, control, a0, simulator)
 
 
 if __name__ == "__main__":
