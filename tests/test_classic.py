@@ -188,8 +188,9 @@ def test_feasibility_first_reaches_zermelo_from_far_starts():
     are farthest from the target (initial max |E| 11-30): with the composite step, minimum
     time pulls tf down while the target is still far and the iterates stall at max |E| ~ 4.5
     (4 of 16 at the reference); with `feasibility_first` (the normal step alone while it is
-    cut), 10-11 of 16 measured under round-off perturbations of the starts, and every SUCCESS
-    passes the independent KKT check."""
+    cut), 10-11 of 16 measured under round-off perturbations of the starts (relative 1e-14 to
+    3e-10, and with XLA_FLAGS=--xla_cpu_max_isa=AVX), at least 8 required; every SUCCESS passes
+    the independent KKT check."""
     entry = CLASSIC.get("zermelo")
     starts = jt.random_starts(
         entry.problem, entry.control, jax.random.key(0), 32, around=entry.start, spread=0.5, simulator=SIM
@@ -200,7 +201,7 @@ def test_feasibility_first_reaches_zermelo_from_far_starts():
     sols = jt.solve_batch(entry.problem, entry.control, far, solver, simulator=SIM, max_steps=500, progress=False)
     names, J = jt.status_name(sols.status), np.asarray(sols.objective)
     at = (names == "SUCCESS") & (np.abs(J - entry.reference) <= entry.gap)
-    assert at.sum() >= 9
+    assert at.sum() >= 8
     for i in np.flatnonzero(names == "SUCCESS"):
         report = jt.kkt_report(entry.problem, entry.control, sols.params[i], simulator=SIM)
         assert report.satisfied(solver.ctol, solver.acceptable_gtol)
