@@ -26,6 +26,10 @@ SAIL = jt.problems.solar_sail
 SOLVERS = {
     "default": jt.KalmanSQP(),
     "kalman-search": SAIL.kalman_search_solver(),
+    "trust-region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
+    "trust-region-feasibility-first": jt.KalmanSQP(
+        hessian="exact", globalization=jt.TrustRegion(feasibility_first=True)
+    ),
     "augmented-lagrangian": jt.AugmentedLagrangian(),
 }
 
