@@ -350,10 +350,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     else:
         d_soc, _ = min_norm_step(ev.H, -cand.E)
     d_norm = jnp.where(accept, size(total), size(d))
-    # on the boundary: |d| >= 0.8 radius; a normal step alone (`feasibility_first`) is cut to
-    # zeta x radius, which counts, with a margin for its round-off (0.8 x radius is the
-    # default zeta's exact length: the radius would double or not by the last bit)
-    edge = (min(0.8, tr.zeta) * (1.0 - 1e-9) if tr.feasibility_first else 0.8) * state.radius
+    # on the boundary: |d| >= 0.8 radius, with a margin for round-off: a normal step cut to
+    # the default zeta x radius and taken alone (no tangential part, or `feasibility_first`)
+    # is exactly that long, and the doubling would be decided by its last bit
+    edge = 0.8 * (1.0 - 1e-9) * state.radius
     radius = jnp.where(
         accept & ~first,
         jnp.where(
