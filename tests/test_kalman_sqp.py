@@ -16,7 +16,7 @@ from jaxtraj._kalman_sqp import convexify
 from jaxtraj._kkt import kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
-from jaxtraj._trust_region import lagrangian_hessian, min_norm_step, subproblem, trust_region_step
+from jaxtraj._trust_region import convexify_blockwise, lagrangian_hessian, min_norm_step, subproblem, trust_region_step
 from jaxtraj.baselines import solve_slsqp
 
 _bfgs = jax.jit(bfgs_update)
@@ -131,6 +131,40 @@ def test_convexify_of_no_curvature_is_the_identity():
     H = np.array([[0.375, 0.0, 0.125, 0.0], [0.5, 0.0, 0.5, 0.0]])
     B = np.asarray(convexify(jnp.zeros((4, 4)), jnp.asarray(H), 1e-8))
     np.testing.assert_allclose(B, np.eye(4), atol=1e-14)
+
+
+def test_convexify_blockwise_keeps_the_newton_step_where_the_shift_is_not_enough():
+    """The trust region's B (`convexify_blockwise`): W + c H^T H where that is positive
+    definite; where it is not (W pulled down along the rows' range), B is still positive
+    definite and the equality QP's step is still W's (its reduced Hessian Z^T W Z and cross
+    block Z^T W Y are kept), where `convexify`'s flip of the whole matrix changes the step.
+    Zeroed (inactive) rows change nothing; an indefinite reduced Hessian gives a positive
+    definite B; no curvature at all the identity."""
+    rng = np.random.default_rng(3)
+    p, m = 6, 2
+    H = rng.normal(size=(m, p))
+    _, _sv, Vt = np.linalg.svd(H)
+    Z, Y = Vt[m:].T, Vt[:m].T
+    C = 0.3 * rng.normal(size=(p - m, m))
+    blockwise = lambda W, H: np.asarray(convexify_blockwise(jnp.asarray(W), jnp.asarray(H), 1e-8))
+    G_a, E = rng.normal(size=p), rng.normal(size=m)
+    for pull in (0.5, 1e3):
+        W = Z @ np.diag(rng.uniform(1, 5, p - m)) @ Z.T - pull * Y @ Y.T + Z @ C @ Y.T + Y @ C.T @ Z.T
+        c = np.linalg.norm(W) / np.linalg.norm(H.T @ H)
+        B = blockwise(W, H)
+        assert np.linalg.eigvalsh(B).min() > 0
+        np.testing.assert_allclose(Z.T @ B @ Z, Z.T @ W @ Z, atol=1e-10 * np.linalg.norm(W))
+        step = _kkt(W, H, G_a, E)[0]
+        np.testing.assert_allclose(_kkt(B, H, G_a, E)[0], step, rtol=1e-8, atol=1e-8)
+        if pull < 1:
+            np.testing.assert_allclose(B, W + c * H.T @ H, atol=1e-10 * np.linalg.norm(W))
+        else:
+            flipped = _kkt(np.asarray(convexify(jnp.asarray(W), jnp.asarray(H), 1e-8)), H, G_a, E)[0]
+            assert np.linalg.norm(flipped - step) > 1e-2 * np.linalg.norm(step)
+        np.testing.assert_allclose(blockwise(W, np.vstack([H, np.zeros((3, p))])), B, atol=1e-10 * np.linalg.norm(B))
+    W = Z @ np.diag([-2.0, 1.0, 3.0, 4.0]) @ Z.T + Y @ Y.T
+    assert np.linalg.eigvalsh(blockwise(W, H)).min() > 0
+    np.testing.assert_allclose(blockwise(np.zeros((p, p)), H), np.eye(p), atol=1e-12)
 
 
 def test_merit_slope_matches_finite_differences_and_is_a_descent():
