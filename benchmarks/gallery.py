@@ -117,8 +117,12 @@ def _run_baseline(fn):
 SOLVERS = {
     "default": _run_jaxtraj(None),
     "trust-region": _run_jaxtraj(jt.KalmanSQP(hessian="exact", globalization="trust-region")),
+    # feasibility first wherever the normal step is cut / never (the default threshold: 0.1)
     "trust-region-feasibility-first": _run_jaxtraj(
-        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=True))
+        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=0.0))
+    ),
+    "trust-region-composite": _run_jaxtraj(
+        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=float("inf")))
     ),
     "kalman-search": _run_jaxtraj(jt.KalmanSearch()),
     "augmented-lagrangian": _run_jaxtraj(jt.AugmentedLagrangian()),

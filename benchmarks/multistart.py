@@ -27,8 +27,12 @@ SOLVERS = {
     "default": jt.KalmanSQP(),
     "kalman-search": SAIL.kalman_search_solver(),
     "trust-region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
+    # feasibility first wherever the normal step is cut / never (the default threshold: 0.1)
     "trust-region-feasibility-first": jt.KalmanSQP(
-        hessian="exact", globalization=jt.TrustRegion(feasibility_first=True)
+        hessian="exact", globalization=jt.TrustRegion(feasibility_first=0.0)
+    ),
+    "trust-region-composite": jt.KalmanSQP(
+        hessian="exact", globalization=jt.TrustRegion(feasibility_first=float("inf"))
     ),
     "augmented-lagrangian": jt.AugmentedLagrangian(),
 }

@@ -16,10 +16,13 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
   negative curvature the step runs to the boundary along it instead of being convexified away.
   This is what the line search cannot do: near a saddle of the reduced problem (Earth-Mars
   case 2) the line-search SQP, with its eigenvalues made positive, crawls.
-* feasibility first (`TrustRegion(feasibility_first=True)`): while v is cut (the linearized
-  constraints lie beyond zeta x radius), d = v alone: the filter's step towards the
-  linearized constraints, before the objective has a say (the step of a feasibility
-  restoration, on the same merit and ratio test).
+* feasibility first: far from feasible, while v is cut (the linearized constraints lie beyond
+  zeta x radius), d = v alone: the filter's step towards the linearized constraints, before
+  the objective has a say (the step of a feasibility restoration, on the same merit and ratio
+  test). "Far" is |E| > `feasibility_first` x |H|_F |a| (0.1): the linearized constraints ask
+  for a change of the parameters of at least that fraction of their size, a measure that is
+  invariant to the scale of E and of a, and that rank-deficient rows at a small violation do
+  not inflate (the length of v itself would: Earth-Mars case 2 near its saddle).
 * free knot times: a gap t_{i+1} - t_i may shrink to no less than `gap_floor` of its length in
   one step; a step that would shrink it further observes the gap's change at that bound, as one
   more row of the filter, one row per round, rows added until none is violated. This is appendix
@@ -218,10 +221,10 @@ def subproblem(grad, W, V, radius):
     return V @ jnp.where(hard, u + tau * q0, u)
 
 
-def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor, feasibility_first=False):
+def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor, normal_only=False):
     """The composite step d = v + u (module docs), with the knot gaps kept above `gap_floor`
-    of their length by observations added one per round; with `feasibility_first`, the normal
-    step alone while it is cut to `zeta` x radius."""
+    of their length by observations added one per round; where `normal_only` (a boolean,
+    traced or not), the normal step alone while it is cut to `zeta` x radius."""
     g, E, H = ev.G_a, ev.E, ev.H
     gaps = knots[1:] - knots[:-1]
     R = dknots[1:] - dknots[:-1]  # d(gap)/da
@@ -237,7 +240,7 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
         v = v * jnp.minimum(1.0, zeta * radius / jnp.maximum(v_norm, 1e-300))
         rest = jnp.sqrt(jnp.maximum(radius**2 - v @ v, 0.0))
         d = v + subproblem(g + W @ v, W, V, rest)
-        return jnp.where(v_norm > zeta * radius, v, d) if feasibility_first else d
+        return jnp.where(normal_only & (v_norm > zeta * radius), v, d)
 
     def violations(d, active):
         short = movable & ~active & (gaps + R @ d < gap_floor * gaps)
@@ -359,7 +362,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         size = lambda d: jnp.max(jnp.abs(d))
     else:
         B = W
-        d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, tr.feasibility_first)
+        # far from feasible: the linearized constraints ask for a relative change of the
+        # parameters of at least `feasibility_first` (module docs)
+        far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
+        d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far)
         lam_qp = lam = state.lam
         size = jnp.linalg.norm
     # the penalty carries over unless it ran past `mu_max` (as the line search's)
@@ -397,7 +403,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         d_soc, _ = min_norm_step(ev.H, -cand.E)
     d_norm = jnp.where(accept, size(total), size(d))
     # on the boundary: |d| >= 0.8 radius, with a margin for round-off: a normal step cut to
-    # the default zeta x radius and taken alone (no tangential part, or `feasibility_first`)
+    # the default zeta x radius and taken alone (no tangential part, or feasibility first)
     # is exactly that long, and the doubling would be decided by its last bit
     edge = 0.8 * (1.0 - 1e-9) * state.radius
     radius = jnp.where(
@@ -490,13 +496,16 @@ class TrustRegion(eqx.Module):
       least-squares multipliers of 1e12 and a penalty of 1e16 that, kept, rejects every full
       step near the optimum for the constraints' curvature (the minimum-time double
       integrator from a perturbed start: 500 steps at 2.14 instead of SUCCESS at 2).
-    - `feasibility_first`: while the normal step is cut (the linearized constraints are out of
-      the radius's reach), take it alone, without the tangential step (False). Problems
-      without inequality rows (with them the step is the QP's). From starts far from feasible
-      this keeps the objective from steering the iterates into a region where the violation
-      stalls (Zermelo's ship, 32 random starts: 15 -> 26 at the reference; minimum time runs
-      tf towards 0 while the target is still far); from good starts it costs iterations
-      (Earth-Mars cases 1 and 2: 10 -> 12 and 9 -> 18). benchmarks/RESULTS.md.
+    - `feasibility_first`: far from feasible, |E| > feasibility_first x |H|_F |a|, the normal
+      step is taken alone while it is cut (the linearized constraints out of the radius's
+      reach), without the tangential step (0.1; 0: wherever the normal step is cut; inf:
+      never). Problems without inequality rows (with them the step is the QP's). It keeps the
+      objective from steering the iterates into a region where the violation stalls
+      (Zermelo's ship, 32 random starts: 15 at the reference with inf, 26 with 0.1 or 0:
+      minimum time runs tf towards 0 while the target is still far). The threshold spares good
+      starts: with 0, Earth-Mars cases 1 and 2 took 12 and 18 iterations instead of 10 and 9
+      (the normal step cut near a saddle at max |E| ~ 1e-3); with 0.1 (their starts are at
+      0.04) 10 and 9, and 0.05-0.1 give the same counts. benchmarks/RESULTS.md.
     """
 
     radius: float = 1.0
@@ -504,7 +513,7 @@ class TrustRegion(eqx.Module):
     gap_floor: float = 0.5
     eta: float = 1e-4
     mu_max: float = 1e8
-    feasibility_first: bool = False
+    feasibility_first: float = 0.1
 
     def __check_init__(self):
         checks = {
@@ -513,7 +522,7 @@ class TrustRegion(eqx.Module):
             "gap_floor": lambda: 0 < self.gap_floor < 1,
             "eta": lambda: 0 < self.eta < 0.25,
             "mu_max": lambda: self.mu_max > 0,
-            "feasibility_first": lambda: isinstance(self.feasibility_first, bool),
+            "feasibility_first": lambda: not isinstance(self.feasibility_first, bool) and self.feasibility_first >= 0,
         }
         check_settings("TrustRegion", self, checks)
 
