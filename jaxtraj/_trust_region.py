@@ -144,6 +144,13 @@ def min_norm_step(rows, target, active=None):
     return d, 0.5 * (V + V.T)
 
 
+def eigh_within(M, P):
+    """Eigenvalues (ascending) and eigenvectors of M restricted to the range of the orthogonal
+    projector P, first: the directions outside P get the eigenvalue |M| + 1, above every one
+    within, so they come last."""
+    return jnp.linalg.eigh(P @ M @ P + (jnp.linalg.norm(M) + 1.0) * (jnp.eye(M.shape[0], dtype=M.dtype) - P))
+
+
 def convexify_blockwise(W, A, min_curvature):
     """The QP's positive definite B from the exact Hessian of the Lagrangian W and the active
     rows A: `convexify`'s W + c A^T A (c = |W| / |A^T A|) where that is positive definite;
@@ -162,28 +169,27 @@ def convexify_blockwise(W, A, min_curvature):
     in_range = s > 1e-10 * jnp.max(s, initial=0.0)
     rank = jnp.sum(in_range)
     PY = (Vt.T * in_range[None, :]) @ Vt
-    PY = 0.5 * (PY + PY.T)
     PZ = jnp.eye(p, dtype=W.dtype) - PY
     scale = jnp.linalg.norm(W)
 
-    def positive(M, outside, n_out):
-        """M on the complement of the projector `outside` (of rank n_out) with its eigenvalues
-        made positive, and its inverse there; the outside directions are marked by a shift
-        below every eigenvalue of M, so that they are the first n_out of eigh's."""
-        w, U = jnp.linalg.eigh(M - 2.0 * (jnp.linalg.norm(M) + 1.0) * outside)
-        U = U * (jnp.arange(p) >= n_out)[None, :]
+    def positive(M, P, n_in):
+        """M within the range of the projector P (of rank n_in) with its eigenvalues made
+        positive, and its inverse there."""
+        w, U = eigh_within(M, P)
+        inside = jnp.arange(p) < n_in
+        U = U * inside[None, :]
         w = jnp.abs(w)
-        top = jnp.maximum(jnp.max(jnp.where(jnp.arange(p) >= n_out, w, 0.0)), scale)
-        # no curvature at all (W = 0; the sentinel leaves round-off): the identity there
+        top = jnp.maximum(jnp.max(jnp.where(inside, w, 0.0)), scale)
+        # no curvature at all (W = 0; within P eigh leaves round-off): the identity there
         w = jnp.where(scale > 0.0, jnp.maximum(w, min_curvature * top), 1.0)
         return (U * w[None, :]) @ U.T, (U / w[None, :]) @ U.T
 
-    null_block, null_inverse = positive(PZ @ W @ PZ, PY, rank)
+    null_block, null_inverse = positive(W, PZ, p - rank)
     cross = PZ @ W @ PY
     through = cross.T @ null_inverse @ cross
     AtA = A.T @ A
     c = scale / jnp.maximum(jnp.linalg.norm(AtA), 1e-300)
-    schur, _ = positive(PY @ W @ PY + c * AtA - through, PZ, p - rank)
+    schur, _ = positive(W + c * AtA - through, PY, rank)
     B = null_block + cross + cross.T + through + schur
     return 0.5 * (B + B.T)
 
@@ -192,10 +198,8 @@ def subproblem(grad, W, V, radius):
     """min grad^T u + 1/2 u^T W u over u = V u, |u| <= radius (V: the null-space projector),
     solved exactly by the eigenvalues of V W V (More and Sorensen; in the hard case the
     eigenvector of the smallest eigenvalue is added to reach the boundary)."""
-    n = W.shape[0]
     # Range directions of V get an eigenvalue above every reduced one and no gradient.
-    top = jnp.linalg.norm(W) + 1.0
-    lam, Q = jnp.linalg.eigh(V @ W @ V + top * (jnp.eye(n) - V))
+    lam, Q = eigh_within(W, V)
     gt = Q.T @ (V @ grad)
     norm_at = lambda s: jnp.linalg.norm(gt / (lam + s))
     lo = jnp.maximum(0.0, -lam[0])
