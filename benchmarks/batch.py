@@ -137,8 +137,8 @@ def solvers(n=256, subset=32):
     a0s = starts(n)
     for name, solver in [
         ("KalmanSearch (published tuning)", SOLVER),
-        ("KalmanSQP (default)", jt.KalmanSQP()),
-        ("KalmanSQP trust region", jt.KalmanSQP(hessian="exact", globalization="trust-region")),
+        ("KalmanSQP (default: trust region)", jt.KalmanSQP()),
+        ("KalmanSQP line search (BFGS)", jt.KalmanSQP(hessian="bfgs", globalization="line-search")),
     ]:
         loop = loop_rate(a0s[:subset], solver)
         cells, ok = [], []

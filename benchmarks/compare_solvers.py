@@ -72,10 +72,10 @@ def run_case(case):
     prob, ctrl, a0 = EM.thesis_case(case)
     solvers = {
         "KalmanSearch": EM.thesis_solver(case),
-        "KalmanSQP": jt.KalmanSQP(),
-        "KalmanSQP pure BFGS": jt.KalmanSQP(exact_iterations=0),
-        "KalmanSQP exact": jt.KalmanSQP(hessian="exact"),
-        "KalmanSQP trust region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
+        "KalmanSQP (default: trust region)": jt.KalmanSQP(),
+        "KalmanSQP line search (BFGS)": jt.KalmanSQP(hessian="bfgs", globalization="line-search"),
+        "KalmanSQP pure BFGS": jt.KalmanSQP(hessian="bfgs", exact_iterations=0, globalization="line-search"),
+        "KalmanSQP exact, line search": jt.KalmanSQP(globalization="line-search"),
     }
     rows = {}
     for name, solver in solvers.items():
@@ -142,7 +142,7 @@ def main():
     for case in args.cases:
         rows = run_case(case)
         all_rows[case] = rows
-        ref = rows["KalmanSQP"]["warm"]
+        ref = rows["KalmanSQP (default: trust region)"]["warm"]
         for name, r in rows.items():
             print(
                 f"| {case} | {name} | {r['status']} | {r['tf']:.8f} | {r['maxE']:.1e} | {r['pg']:.1e} "

@@ -50,8 +50,8 @@ except ImportError:
 
 SOLVERS = {
     "KalmanSearch": jt.KalmanSearch(),
-    "KalmanSQP (default)": jt.KalmanSQP(),
-    "KalmanSQP trust region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
+    "KalmanSQP (default: trust region)": jt.KalmanSQP(),
+    "KalmanSQP line search (BFGS)": jt.KalmanSQP(hessian="bfgs", globalization="line-search"),
     "AugmentedLagrangian": jt.AugmentedLagrangian(),
 }
 MAX_STEPS = 5000  # jt.solve's default

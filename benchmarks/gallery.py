@@ -8,7 +8,8 @@ tol = 1e-6 (1 + |reference|)), iterations, first call (compile + solve) and warm
 2). A SUCCESS outside that band is flagged `FALSE-SUCCESS?`: a SUCCESS must be a local
 optimum of the restricted problem, so it should be checked against the others.
 
-Solvers: KalmanSQP (default), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and, when CasADi
+Solvers: KalmanSQP (default: exact Hessian, trust region; `line-search`: BFGS and the merit line
+search, the default until 2026-12-04), KalmanSearch, AugmentedLagrangian, SciPy SLSQP and, when CasADi
 is installed, IPOPT (both on the same compiled evaluation). A solver that cannot honor a
 problem's constraints raises; the table says `refused`.
 
@@ -115,15 +116,12 @@ def _run_baseline(fn):
 
 
 SOLVERS = {
-    "default": _run_jaxtraj(None),
-    "trust-region": _run_jaxtraj(jt.KalmanSQP(hessian="exact", globalization="trust-region")),
+    "default": _run_jaxtraj(None),  # KalmanSQP(): exact Hessian, trust region
+    # the default until 2026-12-04: BFGS and the merit line search
+    "line-search": _run_jaxtraj(jt.KalmanSQP(hessian="bfgs", globalization="line-search")),
     # feasibility first wherever the normal step is cut / never (the default threshold: 0.1)
-    "trust-region-feasibility-first": _run_jaxtraj(
-        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=0.0))
-    ),
-    "trust-region-composite": _run_jaxtraj(
-        jt.KalmanSQP(hessian="exact", globalization=jt.TrustRegion(feasibility_first=float("inf")))
-    ),
+    "trust-region-feasibility-first": _run_jaxtraj(jt.KalmanSQP(globalization=jt.TrustRegion(feasibility_first=0.0))),
+    "trust-region-composite": _run_jaxtraj(jt.KalmanSQP(globalization=jt.TrustRegion(feasibility_first=float("inf")))),
     "kalman-search": _run_jaxtraj(jt.KalmanSearch()),
     "augmented-lagrangian": _run_jaxtraj(jt.AugmentedLagrangian()),
     "slsqp": _run_baseline(solve_slsqp),

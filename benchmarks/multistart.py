@@ -24,16 +24,12 @@ import jaxtraj as jt
 
 SAIL = jt.problems.solar_sail
 SOLVERS = {
-    "default": jt.KalmanSQP(),
+    "default": jt.KalmanSQP(),  # exact Hessian, trust region
+    "line-search": jt.KalmanSQP(hessian="bfgs", globalization="line-search"),  # the default until 2026-12-04
     "kalman-search": SAIL.kalman_search_solver(),
-    "trust-region": jt.KalmanSQP(hessian="exact", globalization="trust-region"),
     # feasibility first wherever the normal step is cut / never (the default threshold: 0.1)
-    "trust-region-feasibility-first": jt.KalmanSQP(
-        hessian="exact", globalization=jt.TrustRegion(feasibility_first=0.0)
-    ),
-    "trust-region-composite": jt.KalmanSQP(
-        hessian="exact", globalization=jt.TrustRegion(feasibility_first=float("inf"))
-    ),
+    "trust-region-feasibility-first": jt.KalmanSQP(globalization=jt.TrustRegion(feasibility_first=0.0)),
+    "trust-region-composite": jt.KalmanSQP(globalization=jt.TrustRegion(feasibility_first=float("inf"))),
     "augmented-lagrangian": jt.AugmentedLagrangian(),
 }
 

@@ -7,7 +7,7 @@ A problem's `control_lower` / `control_upper` are honored in one of three ways:
 * as bounds on the family's control-value parameters (`value_indices`), when the family
   declares them exact (`value_bounds_exact`: u is, channel by channel, a convex combination
   of those entries, so bounding them bounds u everywhere; piecewise linear and constant
-  controls, saturated splines). KalmanSQP (line search), KalmanSearch and the SLSQP / IPOPT
+  controls, saturated splines). KalmanSQP (either globalization), KalmanSearch and the SLSQP / IPOPT
   baselines take them as rows a_i - upper <= 0, lower - a_i <= 0 of the same inequality set as
   the path constraints (`Evaluation.V`); AugmentedLagrangian projects on its parameter box;
 * otherwise a solver that relies on the rows raises a ValueError (`require_rows`): nothing

@@ -61,8 +61,9 @@ def _parser():
     s.add_argument(
         "--solver",
         help="default: the problem's own (earth-mars, min-energy, solar-sail: kalman; attitude and your own: sqp); "
-        "kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP, BFGS), "
-        "sqp-exact (KalmanSQP, exact Hessian), sqp-tr (KalmanSQP, exact Hessian, trust region)",
+        "kalman (the thesis's Kalman-filter search, published tuning), sqp (KalmanSQP's default: exact "
+        "Hessian, trust region; sqp-tr the same), sqp-exact (KalmanSQP, exact Hessian, line search), "
+        "sqp-bfgs (KalmanSQP, BFGS, line search)",
     )
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
     s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
@@ -133,7 +134,7 @@ def parse_control(spec):
         raise _UsageError(f"control spec {spec!r}: {e}") from None
 
 
-_SOLVERS = ("kalman", "sqp", "sqp-exact", "sqp-tr")
+_SOLVERS = ("kalman", "sqp", "sqp-exact", "sqp-tr", "sqp-bfgs")
 
 
 def _setup(problem_name, args):
@@ -388,12 +389,12 @@ def _solve(args):
         raise _UsageError(f"{args.problem}: {e}") from None
     if args.solver == "kalman" and not isinstance(solver, jt.KalmanSearch):
         solver = jt.KalmanSearch()  # the problem's own tuning where it has one
-    elif args.solver == "sqp":
+    elif args.solver in ("sqp", "sqp-tr"):
         solver = jt.KalmanSQP()
     elif args.solver == "sqp-exact":
-        solver = jt.KalmanSQP(hessian="exact")
-    elif args.solver == "sqp-tr":
-        solver = jt.KalmanSQP(hessian="exact", globalization="trust-region")
+        solver = jt.KalmanSQP(globalization="line-search")
+    elif args.solver == "sqp-bfgs":
+        solver = jt.KalmanSQP(hessian="bfgs", globalization="line-search")
     sim = jt.RK4(args.steps)
     print(f"{args.problem} ({label}): {ctrl!r}, {ctrl.num_params} parameters, RK4({args.steps})", flush=True)
     print(f"compiling and solving {args.starts} start(s) ...", flush=True)

@@ -11,21 +11,26 @@ returns the SQP step
 
 and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a + B d).
 
-* Hessian. `hessian="bfgs"` (default): B is the exact Hessian of the Lagrangian
-  (forward-over-forward autodiff through the simulation) at a0 and at the candidates of the
-  first `exact_iterations` iterations, then Powell-damped BFGS updates on the Lagrangian
+* Defaults: the exact Hessian and the trust region, `KalmanSQP()` = `KalmanSQP(hessian=
+  "exact", globalization="trust-region")`, also `jt.solve`'s default: the configuration with
+  fewer iterations than the thesis on all seven Earth-Mars cases, SUCCESS on every gallery
+  problem from its naive start, and the most random starts at the reference
+  (benchmarks/RESULTS.md, "The trust region as the one default").
+* Hessian. `hessian="exact"` (default): the exact Hessian of the Lagrangian
+  (forward-over-forward autodiff through the simulation) at every accepted point.
+  `hessian="bfgs"` (line search only): exact at a0 and at the candidates of the first
+  `exact_iterations` iterations, then Powell-damped BFGS updates on the Lagrangian
   gradient, which keep it positive definite (the early exact Hessians steer the first steps
-  into the right basin; pure BFGS ends case 3 in a worse local minimum). With the line
-  search, a candidate of a search that backtracks (its BFGS step was rejected) is evaluated
-  with the exact Hessian too, which replaces the model if it is accepted (unless
-  `exact_iterations=0`, pure BFGS): BFGS cannot learn a free scale of the parameters (orbit
-  raising's thrust vector, normalized in the dynamics). `hessian="exact"`:
-  the exact Hessian at every candidate (fewer iterations, more work per iteration). Either
-  exact Hessian is made positive definite by `convexify`.
-* Globalization (`globalization`, a module with its own settings and state): the merit line
-  search `jt.LineSearch` (default; `jaxtraj._line_search`) or the composite-step trust region
-  `jt.TrustRegion` (`jaxtraj._trust_region`; exact Hessian; the composite step without
-  inequalities, the QP below in a box with them). This module
+  into the right basin; pure BFGS ends case 3 in a worse local minimum). A candidate of a
+  search that backtracks (its BFGS step was rejected) is evaluated with the exact Hessian
+  too, which replaces the model if it is accepted (unless `exact_iterations=0`, pure BFGS):
+  BFGS cannot learn a free scale of the parameters (orbit raising's thrust vector, normalized
+  in the dynamics). The line search makes either exact Hessian positive definite by
+  `convexify`, the trust region its own way.
+* Globalization (`globalization`, a module with its own settings and state): the
+  composite-step trust region `jt.TrustRegion` (default; `jaxtraj._trust_region`; exact
+  Hessian; the composite step without inequalities, the QP below in a box with them) or the
+  merit line search `jt.LineSearch` (`jaxtraj._line_search`; either Hessian). This module
   holds what both share: the QP step by the filter, its multipliers, the second-order
   correction, the Hessians.
 * Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`);
@@ -57,8 +62,8 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   a_i / max(|a_i|, 1): `jaxtraj._kkt.stationarity`) <= `acceptable_gtol` (1 + |G|). The search runs
   until |V G_a| <= `gtol` (1 + |G|) (the usual outcome) or until no measurable progress is
   left (each globalization says when); that point is SUCCESS if it meets the guarantee,
-  otherwise STALLED (with the line search CONSTRAINT_STATIONARY where it is infeasible at a
-  stationary point of the violation: locally infeasible). Two levels, because the projected
+  otherwise STALLED (CONSTRAINT_STATIONARY where it is infeasible at a stationary point of
+  the violation: locally infeasible). Two levels, because the projected
   gradient's floor is set by the round-off of the sensitivities, not by the method: a single
   test at `gtol` would flip between SUCCESS and STALLED with the last bits of the start,
   i.e. with the CPU.
@@ -138,10 +143,10 @@ class KalmanSQP(AbstractSolver):
 
     Fields:
 
-    - `hessian`: `"bfgs"` (exact Hessian of the Lagrangian at the start, for the first
-      `exact_iterations` iterations and after a rejected step, then damped BFGS) or
-      `"exact"` (exact Hessian at every candidate).
-    - `exact_iterations`: see `hessian` (int >= 0, 3).
+    - `hessian`: `"exact"` (default; the exact Hessian of the Lagrangian at every accepted
+      point) or `"bfgs"` (with `globalization="line-search"` only: exact at the start, for
+      the first `exact_iterations` iterations and after a rejected step, then damped BFGS).
+    - `exact_iterations`: see `hessian` (int >= 0, 3; BFGS only).
     - `ctol`: constraint tolerance on max |E_i| and on max C (1e-10).
     - `gtol`: projected-gradient target, relative to 1 + |G| (1e-9): the search stops when
       it is met.
@@ -149,11 +154,11 @@ class KalmanSQP(AbstractSolver):
       1 + |G|, 1e-6) when round-off ends the progress before `gtol` is met (module docs).
     - `a_t`: knot approach ratio of the appendix-C ordering observations (as KalmanSearch).
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
-    - `globalization`: `jt.LineSearch()` (default; the merit line search of
-      `jaxtraj._line_search`, with its own settings) or `jt.TrustRegion()` (a composite-step
-      trust region with the QP's step in a box where there are inequalities; `hessian="exact"`: see
-      `jaxtraj._trust_region`; fewer iterations on every Earth-Mars case). The strings
-      `"line-search"` and `"trust-region"` stand for their defaults.
+    - `globalization`: `jt.TrustRegion()` (default; a composite-step trust region with the
+      QP's step in a box where there are inequalities; `hessian="exact"`: see
+      `jaxtraj._trust_region`) or `jt.LineSearch()` (the merit line search of
+      `jaxtraj._line_search`, with its own settings; needed for BFGS). The strings
+      `"trust-region"` and `"line-search"` stand for their defaults.
     - `r_rel`: observation noise of the correction, relative to h P h^T (the QP's
       constraints are met to about this fraction of the innovation).
     - `path_active`: path points with C >= -`path_active` count as active constraints in
@@ -168,7 +173,7 @@ class KalmanSQP(AbstractSolver):
     - `method`: sensitivity method, `"forward"` or `"unit"` (`"unit"` only with BFGS).
     """
 
-    hessian: str = "bfgs"
+    hessian: str = "exact"
     ctol: float = 1e-10
     gtol: float = 1e-9
     acceptable_gtol: float = 1e-6
@@ -177,7 +182,7 @@ class KalmanSQP(AbstractSolver):
     r_rel: float = 1e-12
     exact_iterations: int = 3
     path_active: float = 1e-6
-    globalization: LineSearch | TrustRegion = eqx.field(default="line-search", converter=_globalization)
+    globalization: LineSearch | TrustRegion = eqx.field(default="trust-region", converter=_globalization)
     path_dependence: float = 1e-12
     elastic: float = 1e-6
     method: str = "forward"
@@ -193,7 +198,10 @@ class KalmanSQP(AbstractSolver):
                 f"'trust-region'; got {self.globalization!r}."
             )
         if isinstance(self.globalization, TrustRegion) and self.hessian != "exact":
-            raise ValueError("KalmanSQP: the trust region (`globalization`) needs `hessian='exact'`.")
+            raise ValueError(
+                "KalmanSQP: the trust region (`globalization`, the default) needs `hessian='exact'`; "
+                "BFGS runs with globalization='line-search'."
+            )
         if self.hessian == "exact" and self.method != "forward":
             raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
         checks = {
@@ -307,7 +315,7 @@ class KalmanSQP(AbstractSolver):
             def round_(carry):
                 k, _ = carry
                 elastic = k == 1
-                d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r))
+                d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r), refine=~elastic)
                 d, P2, active, _, excess = inequality_step(
                     d_eq,
                     P_eq,
@@ -352,15 +360,20 @@ class KalmanSQP(AbstractSolver):
         stale = (lam_qp[m:] == 0.0) & (rows[0] < -self.path_active)
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
 
-    def _equality_step(self, prior, P, ev, r):
-        """The filter on H d = -E with noise `r`, plus one refinement pass (the same update
-        with the first estimate as prior mean: its B-metric projection onto H d = -E). When
-        H P H^T is ill-conditioned (rows nearly dependent in the metric of P), the residual
-        left by a noise r relative to the diagonal h P h^T is not small (measured 8e-7 =
-        1.5 |E| on case 7 near its optimum, cond B 2e7); one pass brings it to 1e-13."""
-        d, _, _ = sequential_update(prior, P, ev.H, -ev.E, r)
-        d, P1, _ = sequential_update(d, P, ev.H, -ev.E, r)
-        return d, P1
+    def _equality_step(self, prior, P, ev, r, refine=True):
+        """The filter on H d = -E with noise `r`, plus (where `refine`) one refinement pass
+        (the same update with the first estimate as prior mean: its B-metric projection onto
+        H d = -E). When H P H^T is ill-conditioned (rows nearly dependent in the metric of P),
+        the residual left by a noise r relative to the diagonal h P h^T is not small
+        (measured 8e-7 = 1.5 |E| on case 7 near its optimum, cond B 2e7); one pass brings it
+        to 1e-13. Not for the elastic step's noisy rows: the second pass weighs E twice while
+        the covariance counts it once, and the inequality rows, conditioned through that
+        covariance, then move the step off the penalty's minimizer (26 % past the
+        Gauss-Newton step of a locally infeasible problem, whose trust region then stalled
+        1e-6 short of the violation's stationary point; docs/history.md)."""
+        d1, _, _ = sequential_update(prior, P, ev.H, -ev.E, r)
+        d2, P1, _ = sequential_update(d1, P, ev.H, -ev.E, r)  # (P1 does not depend on the mean)
+        return jnp.where(refine, d2, d1), P1
 
     @staticmethod
     def _stationary_multipliers(ev, B, d, active):

@@ -1,4 +1,5 @@
-"""KalmanSQP's merit line search (`KalmanSQP(globalization=jt.LineSearch())`, the default).
+"""KalmanSQP's merit line search (`KalmanSQP(globalization=jt.LineSearch())`; with BFGS,
+`KalmanSQP(hessian="bfgs", globalization="line-search")`, jt.solve's default until 2026-12-04).
 
 Backtracking on the augmented-Lagrangian merit function phi(a, lambda) = G + lambda^T E +
 mu/2 |E|^2 (+ the PHR terms of the path constraints) over (a + alpha d, lambda + alpha

@@ -1,7 +1,7 @@
-"""KalmanSQP's trust-region globalization (`KalmanSQP(hessian="exact",
-globalization=jt.TrustRegion())`): a Byrd-Omojokun composite-step SQP with the exact Hessian of
-the Lagrangian (Nocedal & Wright sec. 18.5), its constraint parts computed by the sequential
-Kalman update.
+"""KalmanSQP's trust-region globalization (`KalmanSQP()`'s and `jt.solve`'s default:
+`hessian="exact"`, `globalization=jt.TrustRegion()`): a Byrd-Omojokun composite-step SQP with
+the exact Hessian of the Lagrangian (Nocedal & Wright sec. 18.5), its constraint parts
+computed by the sequential Kalman update.
 
 Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
 
@@ -31,7 +31,7 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
   share of the gap, not only when the knots would cross.
 
 Inequalities (path constraints on the grid, terminal inequalities, control- and state-bound
-rows; `_kkt.inequality_rows`). A problem with any takes its step from the line search's QP
+rows; `_kkt.inequality_rows`). A problem with any takes its step from the QP that the line search also uses
 instead (`KalmanSQP.direction`: the filter's equality step and the dual active set, knot order
 by appendix C; here the knot gaps of the KKT test, `_bounds.knot_gap_rows`, are also rows of
 that QP, so that its step respects every gap at once and appendix C only keeps a share of the
@@ -44,7 +44,8 @@ A^T A where that is positive definite (on the QP's feasible set the added term i
 where the active set holds the Newton step is kept), otherwise block by block along the null
 space of those rows and its range (`convexify_blockwise`: the reduced Hessian stays W's where
 W's is positive definite; Goddard's rocket from the naive start: 105 iterations with
-`convexify` on H alone, 69 on the active rows, 7 block by block). The radius is then the box's
+`convexify` on H alone, 69 on the active rows, 7 block by block; a W at the round-off of the
+Lagrangian's gradient counts as no curvature, `_significant`). The radius is then the box's
 half-width (the composite step's is Euclidean), and the multipliers after an accepted step are
 the QP's (nu >= 0, zero off its active set). Without inequalities the composite step above.
 
@@ -124,6 +125,18 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
         W = jax.jacfwd(gradient)(a)
     W = 0.5 * (W + W.T)
     return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)  # a failed integration: no curvature
+
+
+def _significant(W, ev: Evaluation, lam, a):
+    """W, or 0 where it is at the round-off of the Lagrangian's gradient (|W| <= 1e-12
+    (|G_a| + |[H; C_a]^T lambda|) / (1 + |a|), the curvature the gradient's terms would have
+    over the parameters' scale): no curvature, which `convexify_blockwise` turns into the
+    identity. A Hessian of round-off (max-range's start: the two terms of W cancel to 5e-16)
+    has random directions, and the QP's B made of it misjudged which rows the equalities pin
+    (an elastic step on consistent constraints: a false SUCCESS at a saddle, docs/history.md)."""
+    rows = active_rows(ev, jnp.inf)  # E's rows and every inequality row, as lam is laid out
+    gradient = jnp.linalg.norm(ev.G_a) + jnp.linalg.norm(rows.T @ lam)
+    return jnp.where(jnp.linalg.norm(W) <= 1e-12 * gradient / (1.0 + jnp.linalg.norm(a)), 0.0, W)
 
 
 def _multipliers(ev: Evaluation, path_active):
@@ -357,7 +370,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     if with_rows:
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (module docs)
-        B = convexify_blockwise(W, active_rows(ev, sqp.path_active), sqp.min_curvature)
+        B = convexify_blockwise(_significant(W, ev, state.lam, a), active_rows(ev, sqp.path_active), sqp.min_curvature)
         gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
         d_new, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
         d_max = jnp.max(jnp.abs(d_new))

@@ -9,8 +9,10 @@ ALL_CASES = range(1, 8)
 
 #: Relative perturbations of a start the size of a change of CPU or XLA fusion (issue 17).
 ROUNDOFF_EPS = (0.0, 1e-12, 1e-10)
-#: KalmanSQP with the trust-region globalization (exact Hessians), as the tests run it
-TRUST_REGION = jt.KalmanSQP(hessian="exact", globalization="trust-region")
+#: KalmanSQP with the trust-region globalization (exact Hessians): the default
+TRUST_REGION = jt.KalmanSQP()
+#: KalmanSQP with BFGS and the merit line search (the default until 2026-12-04)
+LINE_SEARCH = jt.KalmanSQP(hessian="bfgs", globalization="line-search")
 
 
 def perturbed_starts(a0, seed=17, absolute=False):

@@ -37,8 +37,8 @@ def test_round_trip_is_exact(result, tmp_path):
     np.testing.assert_array_equal(back.params, sol.params)
     assert jt.status_name(back.status) == jt.status_name(sol.status) == "SUCCESS"
     n = int(sol.steps)
-    assert set(back.history.details) == set(sol.history.details) == {"alpha", "kind"}
-    np.testing.assert_array_equal(back.history.details["alpha"], sol.history.details["alpha"][:n])
+    assert set(back.history.details) == set(sol.history.details) == {"radius", "kind"}
+    np.testing.assert_array_equal(back.history.details["radius"], sol.history.details["radius"][:n])
     np.testing.assert_array_equal(back.history.step_norm, sol.history.step_norm[:n])
     np.testing.assert_array_equal(back_traj.x, traj.x)
     assert _strict(tmp_path / "summary.json")["inputs"]["a0"] == [0.0, 1.0, 2.0]

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROUNDOFF_EPS, TRUST_REGION, perturbed_starts
+from helpers import LINE_SEARCH, ROUNDOFF_EPS, TRUST_REGION, perturbed_starts
 from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
@@ -172,7 +172,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     differences of real evaluations (Earth-Mars case 4 at the published start), and it is
     at most -1/2 d^T B d after the penalty update."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
-    solver, sim = jt.KalmanSQP(), jt.RK4(50)
+    solver, sim = LINE_SEARCH, jt.RK4(50)
 
     @jax.jit  # one program (eagerly, the sensitivities and the QP dispatch op by op)
     def start(a0):
@@ -202,7 +202,7 @@ def test_merit_slope_where_a_zero_multiplier_rises():
     entry = jt.problems.classic.get("bryson-denham")
     prob, ctrl, sim = entry.problem, entry.control, jt.RK4(40)
     a0 = jt.random_starts(prob, ctrl, jax.random.key(0), 32, entry.start, 0.5, simulator=sim)[19]
-    solver = jt.KalmanSQP()
+    solver = LINE_SEARCH
     step = eqx.filter_jit(lambda s: solver.step(prob, ctrl, sim, s))
     state = step(step(init_state(solver, prob, ctrl, a0, sim, 10)))  # the start, one accepted step
     ev, a, m = state.ev, state.a, state.ev.E.shape[0]
@@ -352,7 +352,7 @@ def test_pure_bfgs_ends_in_another_local_minimum_on_case_3():
     path from case 3's published start ends in another local minimum (3.35114), confirmed
     as one by SLSQP started there, which stays."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(3)
-    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(exact_iterations=0))
+    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(hessian="bfgs", exact_iterations=0, globalization="line-search"))
     assert sol.status == jt.Status.SUCCESS and float(sol.max_constraint_error) <= 1e-10
     assert float(sol.tf) > SLSQP_OPTIMA[3] + 0.02
     ref = solve_slsqp(prob, ctrl, sol.params)
@@ -376,8 +376,9 @@ def _distances_to_the_optimum(case, solver):
 
 
 def test_superlinear_convergence_on_case_4():
-    """Distances to the optimum of successive iterates: their ratio falls toward 0."""
-    dist, state = _distances_to_the_optimum(4, jt.KalmanSQP())
+    """BFGS and line search: distances to the optimum of successive iterates, their ratio
+    falls toward 0."""
+    dist, state = _distances_to_the_optimum(4, LINE_SEARCH)
     assert state.status == jt.Status.SUCCESS
     ratios = dist[1:] / dist[:-1]
     # measured: 0.85 0.72 0.47 0.32 0.22 0.04 0.08 0.09 0.03 0.12 0.07 (the last ones at
@@ -403,7 +404,13 @@ def test_min_energy_analytic_optimum(hessian):
     """u* = 6 - 12 t, energy 6 (tf = 1)."""
     prob = jt.problems.analytic.min_energy_double_integrator(1.0)
     ctrl = jt.controls.PiecewiseLinear(3)
-    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.2, 0.0, 0.0), jt.KalmanSQP(hessian=hessian), simulator=jt.RK4(4))
+    sol = jt.solve(
+        prob,
+        ctrl,
+        ctrl.initial_guess(1.2, 0.0, 0.0),
+        jt.KalmanSQP(hessian=hessian, globalization="line-search"),
+        simulator=jt.RK4(4),
+    )
     assert sol.status == jt.Status.SUCCESS
     assert abs(float(sol.objective) - 6.0) < 1e-10
     np.testing.assert_allclose(sol.params[:-1], 6.0 - 12.0 * np.linspace(0, 1, 4), atol=1e-7)
@@ -411,7 +418,7 @@ def test_min_energy_analytic_optimum(hessian):
 
 def test_exact_hessian_converges_quadratically_on_case_5():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(5)
-    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(hessian="exact"))
+    sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(globalization="line-search"))
     assert sol.status == jt.Status.SUCCESS
     assert abs(float(sol.tf) - SLSQP_OPTIMA[5]) < 2e-8
     assert int(sol.iterations) <= 9
@@ -437,7 +444,8 @@ def test_batch_and_bad_start():
         {"exact_iterations": -1},
         {"exact_iterations": 1.5},
         {"globalization": "dogleg"},
-        {"globalization": "trust-region"},
+        {"hessian": "bfgs"},  # the default globalization, the trust region, needs exact Hessians
+        {"hessian": "bfgs", "globalization": "trust-region"},
         {"acceptable_gtol": 1e-10},
         {"elastic": 0.0},
         {"elastic": 1.0},
@@ -553,7 +561,7 @@ def test_path_constraint_analytic_optimum(segments, hessian):
         prob,
         ctrl,
         ctrl.initial_guess(1.2, 0.0, 0.0),
-        TRUST_REGION if hessian == "trust-region" else jt.KalmanSQP(hessian=hessian),
+        TRUST_REGION if hessian == "trust-region" else jt.KalmanSQP(hessian=hessian, globalization="line-search"),
         simulator=jt.RK4(segments),
         max_steps=300,
     )

@@ -5,15 +5,18 @@ multipliers checked by the KKT conditions."""
 import functools
 
 import casadi as ca
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import assume, given, settings, strategies as st
 
+from jaxtraj import Evaluation, KalmanSQP
 from jaxtraj._kalman import inequality_step, sequential_update
 from jaxtraj._kalman_sqp import ELASTIC_PINNED
 
 R_REL = 1e-12  # KalmanSQP's default relative noise
+_direction = eqx.filter_jit(KalmanSQP().direction)
 
 
 @functools.cache
@@ -126,3 +129,40 @@ def test_zero_equality_rows_counted_as_none_are_no_rows(seed, n, mi):
     np.testing.assert_array_equal(np.asarray(zeros[2]), np.asarray(none[2]))  # working set
     np.testing.assert_allclose(np.asarray(zeros[0]), np.asarray(none[0]), rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(np.asarray(zeros[3]), np.asarray(none[3]), rtol=1e-9, atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), n=st.sampled_from([3, 7]), mi=st.sampled_from([4, 13]))
+def test_elastic_step_is_the_penalty_qp_solution(seed, n, mi):
+    """Equalities inconsistent with the inequalities (row 0 asks H_0 d >= 1 - E_0 while
+    H_0 d = -E_0): `KalmanSQP.direction` takes its elastic step, the minimizer of
+    g d + 1/2 d^T B d + |H d + E|^2 / (2 r) over the inequalities, r = `elastic` x the mean of
+    h B^-1 h^T; against qpOASES on that QP. (A refinement pass of the noisy equality rows
+    had moved it off: 26 % past the Gauss-Newton step on a locally infeasible problem.)"""
+    B, g, H, E, C, C_a = _random_qp(seed, n, 2, mi, False)
+    # feasible at x1 (about 70 % of the rows active there), x1 off H's solutions by H_0 x1 = 2 - E_0
+    x1 = np.linalg.lstsq(H, -E, rcond=None)[0] + 2.0 * H[0] / (H[0] @ H[0])
+    C_a[0] = -H[0]
+    C = -C_a @ x1 - np.random.default_rng(seed).uniform(0.0, 1.0, mi) * (np.arange(mi) % 3 == 0)
+    C[0] = 1.0 - E[0]  # -H_0 d + 1 - E_0 <= 0
+    solver = KalmanSQP()
+    ev = Evaluation(
+        xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(g), E=jnp.asarray(E), H=jnp.asarray(H), status=None,
+        D=jnp.asarray(C), D_a=jnp.asarray(C_a),
+    )  # fmt: skip
+    d, _ = _direction(ev, jnp.asarray(B), jnp.zeros(2 + mi), jnp.array([0.0, 1.0]), jnp.zeros((2, n)))
+    P = np.linalg.inv(B)
+    r = solver.elastic * np.mean(np.einsum("ip,pq,iq->i", H, P, H))
+    # that QP with the residual as variables, s = (H d + E) / sqrt(r): well conditioned
+    m = H.shape[0]
+    xs = _qpoases(
+        np.block([[B, np.zeros((n, m))], [np.zeros((m, n)), np.eye(m)]]),
+        np.concatenate([g, np.zeros(m)]),
+        np.hstack([H, -np.sqrt(r) * np.eye(m)]),
+        E,
+        C,
+        np.hstack([C_a, np.zeros((mi, m))]),
+    )
+    x = xs[:n]
+    assert np.max(C + C_a @ x) <= 1e-9 and np.max(np.abs(E + H @ x)) > 0.1  # inconsistent rows
+    np.testing.assert_allclose(np.asarray(d), x, rtol=0, atol=1e-6 * (1.0 + np.max(np.abs(x))))

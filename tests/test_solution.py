@@ -178,8 +178,8 @@ def test_problem_name_does_not_recompile():
     ("solver", "details", "start_step"),
     [
         (jt.KalmanSearch(), {"rho", "phase"}, True),
-        (jt.KalmanSQP(), {"alpha", "kind"}, True),
-        (jt.KalmanSQP(hessian="exact", globalization="trust-region"), {"radius", "kind"}, True),
+        (jt.KalmanSQP(hessian="bfgs", globalization="line-search"), {"alpha", "kind"}, True),
+        (jt.KalmanSQP(), {"radius", "kind"}, True),
         (jt.AugmentedLagrangian(), {"outer_iteration"}, False),
     ],
     ids=["KalmanSearch", "LineSearch", "TrustRegion", "AugmentedLagrangian"],
