@@ -118,56 +118,28 @@ def test_slsqp_reaches_each_reference_within_its_gap(name):
 
 @pytest.mark.parametrize("name", CLASSIC.names())
 def test_default_solver_reaches_the_reference_from_the_naive_start(name):
-    """From the naive start and from round-off-sized perturbations of it (absolute, so the
-    zero entries move too): SUCCESS at the reference every time, one optimum. (Orbit raising,
-    whose thrust vector's length is free, needs the exact Hessian after a rejected step:
-    STALLED at r = 1.4905 with BFGS alone.)"""
+    """The default solver (the trust region) from the naive start and from round-off-sized
+    perturbations of it (absolute, so the zero entries move too): SUCCESS at the reference
+    every time, one optimum (measured iterations on the problems with inequality rows:
+    Bryson-Denham 6, minimum-time double integrator 8-13, moon lander 7, singular arc 14,
+    capped terminal 1, max-range 2-3, Goddard 7; Goddard's in at most 15: with the
+    convexification of the whole W + c A^T A instead of `convexify_blockwise`, 69, the flip
+    distorted a reduced Hessian of 1e-4). Orbit raising's thrust vector is normalized in the
+    dynamics, so G and E do not change under a -> c a: the Hessian of the Lagrangian has W a =
+    -grad L, Newton's step is the rescaling d = a, and the parameters' scale drifts; its KKT
+    test at the reference value depends on that drift (the gradient grows as 1/|a|), so
+    SUCCESS or STALLED there (measured: the same -1.5252697377878 to 1e-13 from each start)."""
     entry = CLASSIC.get(name)
     objectives = []
     for start in perturbed_starts(entry.start, absolute=True):  # eps = 0 is the start itself
-        sol = jt.solve(entry.problem, entry.control, start, simulator=SIM)
-        assert jt.status_name(sol.status) == "SUCCESS"
+        sol = jt.solve(entry.problem, entry.control, start, simulator=SIM, max_steps=500)
+        assert jt.status_name(sol.status) in (("SUCCESS", "STALLED") if name == "orbit-raising" else ("SUCCESS",))
+        assert name != "goddard" or int(sol.iterations) <= 15
+        assert float(sol.max_constraint_error) <= jt.KalmanSQP().ctol
         gap = float(sol.objective) - entry.reference
         assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
         objectives.append(float(sol.objective))
     assert max(objectives) - min(objectives) <= 1e-7 * (1.0 + abs(entry.reference))
-
-
-def test_orbit_raising_reaches_the_reference_from_every_start():
-    """Orbit raising's thrust vector is normalized in the dynamics, so G and E do not change
-    under a -> c a: the Hessian of the Lagrangian has W a = -grad L, Newton's step is the
-    rescaling d = a, and the parameters' scale drifts. The trust region reaches the
-    restricted optimum's value from the naive start and its round-off perturbations (measured:
-    the same -1.5252697377878 to 1e-13 from each, |a| drifting to 1e-5...4e-3); its KKT test
-    there depends on that drift (the gradient grows as 1/|a|), so SUCCESS or STALLED. (The
-    default line search: `test_default_solver_reaches_the_reference_from_the_naive_start`.)"""
-    entry = CLASSIC.get("orbit-raising")
-    for start in perturbed_starts(entry.start, absolute=True):
-        sol = jt.solve(entry.problem, entry.control, start, TRUST_REGION, simulator=SIM, max_steps=500)
-        assert jt.status_name(sol.status) in ("SUCCESS", "STALLED")
-        gap = float(sol.objective) - entry.reference
-        assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
-        assert float(sol.max_constraint_error) <= TRUST_REGION.ctol
-
-
-@pytest.mark.parametrize(
-    "name", ["bryson-denham", "min-time-double-integrator", "moon-lander", "singular-arc", "capped-terminal", "goddard"]
-)
-def test_trust_region_reaches_the_reference_with_inequalities(name):
-    """The trust region on the gallery's problems with inequalities (a state path constraint
-    from a start that violates it, control bounds with bang-bang and singular arcs, a terminal
-    inequality), from the naive start and its round-off perturbations: SUCCESS at the
-    reference every time (measured iterations 6, 12-42, 7, 14, 1, 7 against the line search's
-    11, 14, 8, 26, 2, 25). Goddard's in at most 15: with the convexification of the whole W + c
-    A^T A instead of `convexify_blockwise`, 69 (the flip distorted a reduced Hessian of 1e-4)."""
-    entry = CLASSIC.get(name)
-    for start in perturbed_starts(entry.start, absolute=True):
-        sol = jt.solve(entry.problem, entry.control, start, TRUST_REGION, simulator=SIM, max_steps=500)
-        assert jt.status_name(sol.status) == "SUCCESS"
-        assert name != "goddard" or int(sol.iterations) <= 15
-        gap = float(sol.objective) - entry.reference
-        assert -1e-6 * (1.0 + abs(entry.reference)) <= gap <= entry.gap
-        assert float(sol.max_constraint_error) <= TRUST_REGION.ctol
 
 
 def test_trust_region_keeps_the_knot_order_in_its_qp():
