@@ -9,11 +9,13 @@ machine is shared). The loop is timed on the first min(N, 64) starts and extrapo
 Compilation is excluded from both (warm-up calls: for solve_batch on N NaN starts, which have
 the same shapes and end at once).
 
-Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers] [default]` (the
-first four by default, about 10 minutes on the 2-core sandbox); `--skip-memory` leaves out the
-N = 10,000 runs; `solvers` compares KalmanSearch, KalmanSQP and its trust region under solve_batch
-(N = 256); `default` runs solve_batch as a user calls it (no device setup, default solver) against
-loops of single solves and of CasADi + IPOPT solves.
+Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers] [default]
+[accelerator]` (the first four by default, about 10 minutes on the 2-core sandbox);
+`--skip-memory` leaves out the N = 10,000 runs; `solvers` compares KalmanSearch, the default
+KalmanSQP and its line search under solve_batch (N = 256); `default` runs solve_batch as a user calls it (no device setup, default solver) against
+loops of single solves and of CasADi + IPOPT solves; `accelerator` runs solve_batch with its
+default lanes on the default device (a GPU where there is one) for N = 256, 1024, 4096 against a
+loop of single solves there.
 """
 
 import os
@@ -147,6 +149,28 @@ def solvers(n=256, subset=32):
             cells += [f"{rate:.1f}", f"{rate / loop:.2f}x"]
             ok.append(np.mean(np.asarray(sols.status == jt.Status.SUCCESS)))
         print(f"| {name} | {loop:.1f} | " + " | ".join(cells) + f" | {min(ok):.0%} |", flush=True)
+    print()
+
+
+def accelerator(sizes=(256, 1024, 4096), subset=8):
+    """solve_batch as a user calls it on the default device (lanes: its whole slice on an
+    accelerator), against a loop of single solves on the same device."""
+    dev = jax.devices()[0]
+    print(f"## solve_batch on {dev.platform} ({dev.device_kind}), default lanes, loop timed on {subset} starts")
+    print()
+    print("| solver | loop [solves/s] | N | solves/s | vs the loop | first call [s] | success |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    a0s = starts(max(sizes))
+    for name, solver in [("KalmanSearch (published tuning)", SOLVER), ("KalmanSQP (default)", jt.KalmanSQP())]:
+        loop = loop_rate(a0s[:subset], solver)
+        for n in sizes:
+            t0 = time.perf_counter()
+            rate, sols = batch_rate(a0s[:n], solver)
+            first = time.perf_counter() - t0 - n / rate  # the NaN warm-up: compile
+            ok = np.mean(np.asarray(sols.status == jt.Status.SUCCESS))
+            print(
+                f"| {name} | {loop:.1f} | {n} | {rate:.1f} | {rate / loop:.1f}x | {first:.1f} | {ok:.0%} |", flush=True
+            )
     print()
 
 
@@ -304,6 +328,7 @@ SECTIONS = {
     "scaling": scaling,
     "solvers": solvers,
     "default": default,
+    "accelerator": accelerator,
 }
 
 

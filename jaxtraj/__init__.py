@@ -20,8 +20,9 @@ def _xla_cpu_options():
     * The legacy loop emitters (`--xla_cpu_use_fusion_emitters=false`) compile a solver in
       0.63-0.93x the time of the MLIR fusion emitters with the same results and no
       consistent warm cost: time to the first answer is mostly XLA compile. XLA aborts the
-      process on a flag it does not know, so only for jaxlib >= 0.5.3 (the first release
-      with it).
+      process on a flag it does not know, so only for jaxlib 0.5.3 (the first release with
+      it) to 0.10 (XLA retired the legacy emitters in 2026-09; jaxlib 0.11.2, on the GPU
+      machine, aborted at the first computation).
     Measurements: benchmarks/RESULTS.md."""
     if _os.environ.get("JAXTRAJ_NO_XLA_TUNING"):
         return
@@ -29,10 +30,15 @@ def _xla_cpu_options():
     extra = []
     if "--xla_backend_extra_options" not in flags:
         extra.append("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000")
-    if "--xla_cpu_use_fusion_emitters" not in flags and _jaxlib_at_least((0, 5, 3)):
+    if "--xla_cpu_use_fusion_emitters" not in flags and _has_legacy_emitters():
         extra.append("--xla_cpu_use_fusion_emitters=false")
     if extra:
         _os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+
+
+def _has_legacy_emitters():
+    """Whether the installed jaxlib knows `--xla_cpu_use_fusion_emitters` (0.5.3 to 0.10)."""
+    return _jaxlib_at_least((0, 5, 3)) and not _jaxlib_at_least((0, 11))
 
 
 def _jaxlib_at_least(version):
@@ -65,7 +71,11 @@ def _one_cpu_device_per_core():
     initialized `jax.distributed`, or JAXTRAJ_CPU_DEVICES=N (1: JAX's single device); a
     later `jax.config.update` still wins.
     Only possible before JAX starts its backends (not when jaxtraj is imported after a JAX
-    computation)."""
+    computation). Not by default with jaxlib >= 0.11: with jax 0.11.2 KalmanSQP's batch
+    program sharded over 2 or more CPU devices crashed the process (a segmentation fault;
+    KalmanSearch's did not, nor did sharded eigh, svd, lstsq, solve or a while loop of eigh
+    alone; the GPU machine's 16 cores, 2026-12-04, benchmarks/RESULTS.md), so there JAX's
+    single device stays unless JAXTRAJ_CPU_DEVICES asks for more."""
     if "xla_force_host_platform_device_count" in _os.environ.get("XLA_FLAGS", ""):
         return
     if _jax.config.jax_num_cpu_devices != -1:  # set by the user (config or JAX_NUM_CPU_DEVICES)
@@ -76,6 +86,8 @@ def _one_cpu_device_per_core():
         count = int(_os.environ.get("JAXTRAJ_CPU_DEVICES", "0"))
     except ValueError:
         count = 0
+    if count < 1 and _jaxlib_at_least((0, 11)):
+        return
     if count < 1:
         count = len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1)
     try:
