@@ -86,9 +86,9 @@ def _one_cpu_device_per_core():
         count = int(_os.environ.get("JAXTRAJ_CPU_DEVICES", "0"))
     except ValueError:
         count = 0
-    if count < 1 and _jaxlib_at_least((0, 11)):
-        return
     if count < 1:
+        if _jaxlib_at_least((0, 11)):
+            return
         count = len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1)
     try:
         _jax.config.update("jax_num_cpu_devices", count)

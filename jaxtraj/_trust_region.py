@@ -45,7 +45,7 @@ where the active set holds the Newton step is kept), otherwise block by block al
 space of those rows and its range (`convexify_blockwise`: the reduced Hessian stays W's where
 W's is positive definite; Goddard's rocket from the naive start: 105 iterations with
 `convexify` on H alone, 69 on the active rows, 7 block by block; a W at the round-off of the
-Lagrangian's gradient counts as no curvature, `_significant`). The radius is then the box's
+Lagrangian's gradient counts as no curvature, `_curvature_floor`). The radius is then the box's
 half-width (the composite step's is Euclidean), and the multipliers after an accepted step are
 the QP's (nu >= 0, zero off its active set). Without inequalities the composite step above.
 
@@ -127,16 +127,15 @@ def lagrangian_hessian(problem, control, a, simulator, lam):
     return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)  # a failed integration: no curvature
 
 
-def _significant(W, ev: Evaluation, lam, a):
-    """W, or 0 where it is at the round-off of the Lagrangian's gradient (|W| <= 1e-12
-    (|G_a| + |[H; C_a]^T lambda|) / (1 + |a|), the curvature the gradient's terms would have
-    over the parameters' scale): no curvature, which `convexify_blockwise` turns into the
-    identity. A Hessian of round-off (max-range's start: the two terms of W cancel to 5e-16)
-    has random directions, and the QP's B made of it misjudged which rows the equalities pin
-    (an elastic step on consistent constraints: a false SUCCESS at a saddle, docs/history.md)."""
+def _curvature_floor(ev: Evaluation, lam, a):
+    """The round-off level of an exact Hessian of the Lagrangian: 1e-12 (|G_a| + |[H; C_a]^T
+    lambda|) / (1 + |a|), the curvature the gradient's terms would have over the parameters'
+    scale. Below it `convexify_blockwise` sees no curvature: a Hessian of round-off (max-range's
+    start: the two terms of W cancel to 5e-16) has random directions, and the QP's B made of it
+    misjudged which rows the equalities pin (an elastic step on consistent constraints: a false
+    SUCCESS at a saddle, docs/history.md)."""
     rows = active_rows(ev, jnp.inf)  # E's rows and every inequality row, as lam is laid out
-    gradient = jnp.linalg.norm(ev.G_a) + jnp.linalg.norm(rows.T @ lam)
-    return jnp.where(jnp.linalg.norm(W) <= 1e-12 * gradient / (1.0 + jnp.linalg.norm(a)), 0.0, W)
+    return 1e-12 * (jnp.linalg.norm(ev.G_a) + jnp.linalg.norm(rows.T @ lam)) / (1.0 + jnp.linalg.norm(a))
 
 
 def _multipliers(ev: Evaluation, path_active):
@@ -164,7 +163,7 @@ def eigh_within(M, P):
     return jnp.linalg.eigh(P @ M @ P + (jnp.linalg.norm(M) + 1.0) * (jnp.eye(M.shape[0], dtype=M.dtype) - P))
 
 
-def convexify_blockwise(W, A, min_curvature):
+def convexify_blockwise(W, A, min_curvature, negligible=0.0):
     """The QP's positive definite B from the exact Hessian of the Lagrangian W and the active
     rows A: `convexify`'s W + c A^T A (c = |W| / |A^T A|) where that is positive definite;
     where it is not, the repair is split along the null space Z of A and its range Y
@@ -176,13 +175,16 @@ def convexify_blockwise(W, A, min_curvature):
     definite, and its reduced Hessian is W's wherever W's is positive definite. Flipping the
     whole W + c A^T A mixes the two spaces: at Goddard's optimum W has an eigenvalue -2.56 and
     the reduced Hessian 6.8e-5 and 7.7e-4, which the flip distorted into short steps (69
-    iterations from the naive start, 7 with this B; docs/history.md)."""
+    iterations from the naive start, 7 with this B; docs/history.md). Where |W| <= `negligible`
+    (no curvature: W = 0, or W at its round-off, `_curvature_floor`) B is the identity."""
     p = W.shape[0]
     _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
     in_range = s > 1e-10 * jnp.max(s, initial=0.0)
     rank = jnp.sum(in_range)
     PY = (Vt.T * in_range[None, :]) @ Vt
     PZ = jnp.eye(p, dtype=W.dtype) - PY
+    # no curvature at all: |W| <= `negligible` (0, or the round-off of W's terms)
+    W = jnp.where(jnp.linalg.norm(W) <= negligible, 0.0, W)
     scale = jnp.linalg.norm(W)
 
     def positive(M, P, n_in):
@@ -370,7 +372,8 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     if with_rows:
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (module docs)
-        B = convexify_blockwise(_significant(W, ev, state.lam, a), active_rows(ev, sqp.path_active), sqp.min_curvature)
+        A = active_rows(ev, sqp.path_active)
+        B = convexify_blockwise(W, A, sqp.min_curvature, _curvature_floor(ev, state.lam, a))
         gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
         d_new, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
         d_max = jnp.max(jnp.abs(d_new))
