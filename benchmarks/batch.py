@@ -12,10 +12,10 @@ the same shapes and end at once).
 Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers] [default]
 [accelerator]` (the first four by default, about 10 minutes on the 2-core sandbox);
 `--skip-memory` leaves out the N = 10,000 runs; `solvers` compares KalmanSearch, the default
-KalmanSQP and its line search under solve_batch (N = 256); `default` runs solve_batch as a user calls it (no device setup, default solver) against
-loops of single solves and of CasADi + IPOPT solves; `accelerator` runs solve_batch with its
-default lanes on the default device (a GPU where there is one) for N = 256, 1024, 4096 against a
-loop of single solves there.
+KalmanSQP and its line search under solve_batch (N = 256); `default` runs solve_batch as a
+user calls it (no device setup, default solver) against loops of single solves and of CasADi
++ IPOPT solves; `accelerator` runs solve_batch with its default lanes on the default device (a
+GPU where there is one) for N = 256, 1024, 4096 against a loop of single solves there.
 """
 
 import os

@@ -31,7 +31,7 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
   share of the gap, not only when the knots would cross.
 
 Inequalities (path constraints on the grid, terminal inequalities, control- and state-bound
-rows; `_kkt.inequality_rows`). A problem with any takes its step from the QP that the line search also uses
+rows; `_kkt.inequality_rows`). A problem with any takes its step from the QP the line search uses
 instead (`KalmanSQP.direction`: the filter's equality step and the dual active set, knot order
 by appendix C; here the knot gaps of the KKT test, `_bounds.knot_gap_rows`, are also rows of
 that QP, so that its step respects every gap at once and appendix C only keeps a share of the
