@@ -368,16 +368,20 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     fresh = ~state.soc
     with_rows = inequality_rows(ev) is not None
 
-    # a new step (cheap: no integration); used unless a correction is pending
+    # a new step (no integration); only where no correction is pending (in a single solve:
+    # under vmap both branches of `lax.cond` run)
     if with_rows:
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (module docs)
         A = active_rows(ev, sqp.path_active)
         B = convexify_blockwise(W, A, sqp.min_curvature, _curvature_floor(ev, state.lam, a))
         gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
-        d_new, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
-        d_max = jnp.max(jnp.abs(d_new))
-        d_new = d_new * jnp.minimum(1.0, state.radius / jnp.maximum(d_max, 1e-300))
+
+        def new_step():
+            d, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
+            return d * jnp.minimum(1.0, state.radius / jnp.maximum(jnp.max(jnp.abs(d)), 1e-300)), lam_qp
+
+        d, lam_qp = lax.cond(fresh, new_step, lambda: (state.d, state.lam_qp))
         lam = sqp.release_inactive(ev, state.lam, lam_qp)
         size = lambda d: jnp.max(jnp.abs(d))
     else:
@@ -385,15 +389,18 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         # far from feasible: the linearized constraints ask for a relative change of the
         # parameters of at least `feasibility_first` (module docs)
         far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
-        d_new = trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far)
+        d = lax.cond(
+            fresh,
+            lambda: trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far),
+            lambda: state.d,
+        )
         lam_qp = lam = state.lam
         size = jnp.linalg.norm
     # the penalty carries over unless it ran past `mu_max` (as the line search's)
-    mu_new = _penalty(ev, lam, jnp.where(state.mu > tr.mu_max, 0.0, state.mu), d_new, B)
+    mu_new = _penalty(ev, lam, jnp.where(state.mu > tr.mu_max, 0.0, state.mu), d, B)
     mu = jnp.where(fresh, mu_new, state.mu)
-    d = jnp.where(fresh, d_new, state.d)
     lam_qp = jnp.where(fresh, lam_qp, state.lam_qp)
-    pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d_new, B), state.pred)
+    pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d, B), state.pred)
     phi0 = jnp.where(fresh, merit(ev, lam, mu_new), state.phi0)
 
     # one integration: the candidate (the first step's is the start)
@@ -441,7 +448,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
     feasible = is_feasible(new_ev, sqp.ctol)
     kkt_ev = with_knot_gaps(control, new_ev, new_a) if with_rows else new_ev
-    pg = stationarity(kkt_ev, new_a, sqp.path_active)
+    # the stationarity test only where it can decide (SUCCESS needs feasibility): with
+    # inequalities it is rounds of least squares over every near-active or violated row
+    pg = lax.cond(feasible, lambda: stationarity(kkt_ev, new_a, sqp.path_active), lambda: jnp.inf)
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
     # a feasible point, a fresh step inside the radius (the model's own minimizer) predicts a
