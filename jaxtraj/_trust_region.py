@@ -7,8 +7,10 @@ Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
 
 * normal step v: the minimum-norm solution of the linearized constraints H v = -E, i.e. the
   sequential filter update from the prior 0 with covariance I (the thesis's update with unit
-  weights), cut to `zeta` x radius. The same filter's posterior covariance is the projector V
-  onto the null space of H, where the tangential step lives.
+  weights), cut to `zeta` x radius, or Powell's dogleg step where the cut step lowers the
+  linearized violation by less than a tenth of the dogleg's (`normal_step`: nearly rank
+  deficient rows). The same filter's posterior covariance is the projector V onto the null
+  space of H, where the tangential step lives.
 * tangential step u = V w: the trust-region subproblem of the reduced model
   min (g + W v)^T u + 1/2 u^T W u over |u| <= sqrt(radius^2 - |v|^2), solved exactly (More and
   Sorensen): the eigenvalues of the reduced Hessian V W V give the shift sigma >= 0 with
@@ -156,6 +158,30 @@ def min_norm_step(rows, target, active=None):
     return d, 0.5 * (V + V.T)
 
 
+def normal_step(v, rows, target, radius):
+    """The normal step within `radius`: the minimum-norm solution `v` of rows v = target,
+    cut to the radius, unless the cut step lowers the linearized violation 1/2 |rows v -
+    target|^2 by less than a tenth of what Powell's dogleg step (from the Cauchy point
+    towards `v`, on the boundary) does; then the dogleg step. Where the rows are nearly rank
+    deficient, `v` runs along the near-null direction (1 / its singular value) and, cut to a
+    small radius, lowers the violation by nothing: the fraction of the Cauchy decrease that
+    the convergence theory of the composite step asks for (Byrd and Omojokun; Nocedal &
+    Wright sec. 18.5) is then missing, and the iteration crawled (Zermelo, RESULTS.md)."""
+    g = -rows.T @ target  # the violation's gradient at 0
+    Jg = rows @ g
+    cauchy = -(g @ g) / jnp.maximum(Jg @ Jg, 1e-300) * g
+    # the dogleg path cauchy + tau (v - cauchy), 0 <= tau <= 1, where it meets the boundary
+    w = v - cauchy
+    b, c = cauchy @ w, cauchy @ cauchy - radius**2
+    tau = (jnp.sqrt(jnp.maximum(b**2 - (w @ w) * c, 0.0)) - b) / jnp.maximum(w @ w, 1e-300)
+    bent = cauchy + jnp.clip(tau, 0.0, 1.0) * w
+    steepest = -g * radius / jnp.maximum(jnp.linalg.norm(g), 1e-300)
+    dogleg = jnp.where(jnp.linalg.norm(cauchy) >= radius, steepest, bent)
+    cut = v * jnp.minimum(1.0, radius / jnp.maximum(jnp.linalg.norm(v), 1e-300))
+    decrease = lambda d: target @ target - jnp.sum((rows @ d - target) ** 2)
+    return jnp.where(decrease(cut) >= 0.1 * decrease(dogleg), cut, dogleg)
+
+
 def eigh_within(M, P):
     """Eigenvalues (ascending) and eigenvectors of M restricted to the range of the orthogonal
     projector P, first: the directions outside P get the eigenvalue |M| + 1, above every one
@@ -256,7 +282,7 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
         mask = jnp.concatenate([jnp.ones(m, bool), active])
         v, V = min_norm_step(rows, target, mask)
         v_norm = jnp.linalg.norm(v)
-        v = v * jnp.minimum(1.0, zeta * radius / jnp.maximum(v_norm, 1e-300))
+        v = normal_step(v, jnp.where(mask[:, None], rows, 0.0), jnp.where(mask, target, 0.0), zeta * radius)
         rest = jnp.sqrt(jnp.maximum(radius**2 - v @ v, 0.0))
         d = v + subproblem(g + W @ v, W, V, rest)
         return jnp.where(normal_only & (v_norm > zeta * radius), v, d)

@@ -16,7 +16,14 @@ from jaxtraj._kalman_sqp import convexify
 from jaxtraj._kkt import kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
-from jaxtraj._trust_region import convexify_blockwise, lagrangian_hessian, min_norm_step, subproblem, trust_region_step
+from jaxtraj._trust_region import (
+    convexify_blockwise,
+    lagrangian_hessian,
+    min_norm_step,
+    normal_step,
+    subproblem,
+    trust_region_step,
+)
 from jaxtraj.baselines import solve_slsqp
 
 _bfgs = jax.jit(bfgs_update)
@@ -302,6 +309,74 @@ def test_trust_region_subproblem_hard_case(g0):
     u = np.asarray(_subproblem(jnp.asarray(g), jnp.asarray(W), jnp.eye(2), 1.0))
     assert abs(np.linalg.norm(u) - 1.0) < 1e-9
     assert g @ u + 0.5 * u @ W @ u < -0.5025 + 1e-9
+
+
+def _least_squares_in_a_ball(J, t, radius):
+    """min |J v - t| over |v| <= radius, exactly (NumPy): the SVD and the secular equation
+    |v(lam)| = radius for v(lam) = (J^T J + lam I)^-1 J^T t, solved by bisection in log lam."""
+    U, s, Vt = np.linalg.svd(J, full_matrices=False)
+    c = U.T @ t
+    v = lambda lam: Vt.T @ (s * c / (s**2 + lam))
+    keep = s > 1e-12 * s[0]
+    v0 = Vt[keep].T @ (c[keep] / s[keep])
+    if np.linalg.norm(v0) <= radius:
+        return v0
+    lo, hi = -300.0, 300.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.linalg.norm(v(10.0**mid)) > radius else (lo, mid)
+    return v(10.0**hi)
+
+
+def _normal_step(J, t, radius):
+    v_min, _ = min_norm_step(jnp.asarray(J), jnp.asarray(t))
+    return np.asarray(v_min), np.asarray(normal_step(v_min, jnp.asarray(J), jnp.asarray(t), radius))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    p=st.sampled_from([2, 4, 7]),
+    m=st.sampled_from([1, 2, 3]),
+    smallest=st.sampled_from([1.0, 1e-3, 1e-7]),
+    radius=st.floats(1e-4, 10.0),
+)
+def test_normal_step_keeps_a_fraction_of_the_cauchy_decrease(seed, p, m, smallest, radius):
+    """The trust region's normal step (`normal_step`, from the filter's minimum-norm step)
+    lies in the ball, is the minimum-norm step where that fits, and lowers the linearized
+    violation |J v - t|^2 by at least 1/10 of the Cauchy point's decrease (the best step
+    along the steepest descent within the ball, computed here in NumPy): the composite step's
+    condition for convergence (Nocedal & Wright sec. 18.5)."""
+    rng = np.random.default_rng(seed)
+    m = min(m, p)
+    U, _ = np.linalg.qr(rng.normal(size=(m, m)))
+    V, _ = np.linalg.qr(rng.normal(size=(p, m)))
+    J, t = (U * np.geomspace(1.0, smallest, m) * rng.uniform(0.5, 2.0)) @ V.T, rng.normal(size=m)
+    v_min, v = _normal_step(J, t, radius)
+    assert np.linalg.norm(v) <= radius * (1 + 1e-12)
+    if np.linalg.norm(v_min) <= radius:
+        np.testing.assert_array_equal(v, v_min)
+    decrease = lambda d: t @ t - np.sum((J @ d - t) ** 2)
+    g = J.T @ t
+    cauchy = min((g @ g) / np.sum((J @ g) ** 2), radius / np.linalg.norm(g)) * g
+    assert decrease(v) >= 0.1 * decrease(cauchy) * (1 - 1e-9)
+
+
+@pytest.mark.parametrize("radius", [1e-4, 1e-2, 1.0])
+def test_normal_step_with_nearly_rank_deficient_rows(radius):
+    """Two rows with singular values 1 and 1e-7 (Zermelo's terminal rows at tf ~ 0.7): the
+    minimum-norm step runs along the near-null direction, and cut to the radius lowers the
+    violation by < 1e-3 of the best step in the ball (exact, `_least_squares_in_a_ball`); the
+    normal step (the dogleg there) reaches > 0.99 of it."""
+    rng = np.random.default_rng(5)
+    U, _ = np.linalg.qr(rng.normal(size=(2, 2)))
+    V, _ = np.linalg.qr(rng.normal(size=(10, 2)))
+    J, t = (U * np.array([1.0, 1e-7])) @ V.T, np.array([4.5, -1.4])
+    v_min, v = _normal_step(J, t, radius)
+    decrease = lambda d: t @ t - np.sum((J @ d - t) ** 2)
+    best = decrease(_least_squares_in_a_ball(J, t, radius))
+    assert decrease(v_min * radius / np.linalg.norm(v_min)) < 1e-3 * best
+    assert decrease(v) > 0.99 * best
 
 
 def test_min_norm_step_is_the_pseudoinverse_solution():
