@@ -291,18 +291,20 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
         short = movable & ~active & (gaps + R @ d < gap_floor * gaps)
         return short, jnp.where(short, gap_floor * gaps - gaps - R @ d, -jnp.inf)
 
+    # round 0 solves without gap rows; each later round adds the most violated gap's row (one
+    # trace of `solve` in the loop body, so that the program holds the subproblem once)
     def add_row(carry):
         d, active, rounds = carry
         _short, excess = violations(d, active)
-        active = active.at[jnp.argmax(excess)].set(True)
+        active = jnp.where(rounds == 0, active, active.at[jnp.argmax(excess)].set(True))
         return solve(active), active, rounds + 1
 
     def pending(carry):
         d, active, rounds = carry
-        return jnp.any(violations(d, active)[0]) & (rounds < gaps.shape[0])
+        return (rounds == 0) | (jnp.any(violations(d, active)[0]) & (rounds <= gaps.shape[0]))
 
     active = jnp.zeros(gaps.shape, bool)
-    d, _, _ = lax.while_loop(pending, add_row, (solve(active), active, 0))
+    d, _, _ = lax.while_loop(pending, add_row, (jnp.zeros_like(g), active, 0))
     return d
 
 
