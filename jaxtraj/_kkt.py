@@ -186,16 +186,18 @@ def signed_multipliers(g, H, C_a, keep):
         lam = multipliers(jnp.concatenate([H, jnp.where(keep[:, None], C_a, 0.0)]), g)
         return lam.at[m:].set(jnp.where(keep, lam[m:], 0.0))
 
+    # round 0 solves on `keep`; each later one drops the rows with a negative multiplier (one
+    # trace of `solve`, in the loop body)
     def cond(carry):
         keep, lam, rounds = carry
-        return jnp.any(keep & (lam[m:] < 0.0)) & (rounds < keep.shape[0])
+        return (rounds == 0) | (jnp.any(keep & (lam[m:] < 0.0)) & (rounds <= keep.shape[0]))
 
     def body(carry):
         keep, lam, rounds = carry
-        keep = keep & (lam[m:] >= 0.0)
+        keep = jnp.where(rounds == 0, keep, keep & (lam[m:] >= 0.0))
         return keep, solve(keep), rounds + 1
 
-    _, lam, _ = lax.while_loop(cond, body, (keep, solve(keep), 0))
+    _, lam, _ = lax.while_loop(cond, body, (keep, jnp.zeros(m + keep.shape[0], g.dtype), 0))
     lam = lam.at[m:].set(jnp.maximum(lam[m:], 0.0))
     return jnp.linalg.norm(g + jnp.concatenate([H, C_a]).T @ lam), lam
 
