@@ -60,8 +60,9 @@ decrease of |E|^2/2 + |max(C, 0)|^2/2, never lowered (but not carried past `mu_m
 with ratio >= `eta` is accepted; a rejected one is first retried with a second-order
 correction (the minimum-norm step onto H d_c = -E(a + d), by the same filter; with
 inequalities the line search's `KalmanSQP.correction`); the radius
-doubles after a good step on the boundary (ratio > 0.75), halves to |d| / 2 after a poor one
-(ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate with
+doubles after a good step on the boundary (ratio > 0.75; not after a step accepted only with
+its correction: the model without it failed at that length), halves to |d| / 2 after a poor
+one (ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate with
 first-order sensitivities; an accepted one that does not end the solve is integrated once more
 for the Hessian of the Lagrangian with its multipliers (`lagrangian_hessian`; both count in
 `integrations`). The first step's candidate is the start (`init` integrates nothing, so each
@@ -459,12 +460,14 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     d_norm = jnp.where(accept, size(total), size(d))
     # on the boundary: |d| >= 0.8 radius, with a margin for round-off: a normal step cut to
     # the default zeta x radius and taken alone (no tangential part, or feasibility first)
-    # is exactly that long, and the doubling would be decided by its last bit
+    # is exactly that long, and the doubling would be decided by its last bit. A step that the
+    # correction saved does not double it (the uncorrected model failed at that length: the
+    # minimum-time double integrator's fresh steps were rejected after every doubling)
     edge = 0.8 * (1.0 - 1e-9) * state.radius
     radius = jnp.where(
         accept & ~first,
         jnp.where(
-            (ratio > 0.75) & (d_norm >= edge),
+            (ratio > 0.75) & (d_norm >= edge) & fresh,
             jnp.maximum(state.radius, 2.0 * d_norm),
             jnp.where(ratio < 0.25, 0.5 * d_norm, state.radius),
         ),
