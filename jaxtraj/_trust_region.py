@@ -423,12 +423,11 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
             lambda: trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far),
             lambda: state.d,
         )
-        lam_qp = lam = state.lam
+        lam, lam_qp = state.lam, state.lam_qp  # (QP multipliers only with inequality rows)
         size = jnp.linalg.norm
     # the penalty carries over unless it ran past `mu_max` (as the line search's)
     mu_new = _penalty(ev, lam, jnp.where(state.mu > tr.mu_max, 0.0, state.mu), d, B)
     mu = jnp.where(fresh, mu_new, state.mu)
-    lam_qp = jnp.where(fresh, lam_qp, state.lam_qp)
     pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d, B), state.pred)
     phi0 = jnp.where(fresh, merit(ev, lam, mu_new), state.phi0)
 
