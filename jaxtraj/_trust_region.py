@@ -62,7 +62,11 @@ correction (the minimum-norm step onto H d_c = -E(a + d), by the same filter; wi
 inequalities the line search's `KalmanSQP.correction`); the radius
 doubles after a good step on the boundary (ratio > 0.75; not after a step accepted only with
 its correction: the model without it failed at that length), halves to |d| / 2 after a poor
-one (ratio < 0.25) and falls to |d| / 4 after a rejection. Every step integrates one candidate with
+one (ratio < 0.25) and falls to |d| / 4 after a rejection. Where the model was exact along
+the step (ratio 1 to 1e-9: linear constraints and a quadratic objective, whose ratios sit at
+1e-13 while every other gallery problem's boundary steps stay above 1e-6) the radius opens to
+the model's own minimizer (its length / zeta, where the reduced Hessian is positive definite):
+the two-channel transfer in 2 iterations instead of 7 (RESULTS.md). Every step integrates one candidate with
 first-order sensitivities; an accepted one that does not end the solve is integrated once more
 for the Hessian of the Lagrangian with its multipliers (`lagrangian_hessian`; both count in
 `integrations`). The first step's candidate is the start (`init` integrates nothing, so each
@@ -236,10 +240,12 @@ def convexify_blockwise(W, A, min_curvature, negligible=0.0):
     return 0.5 * (B + B.T)
 
 
-def subproblem(grad, W, V, radius):
+def subproblem(grad, W, V, radius, newton_grad=None):
     """min grad^T u + 1/2 u^T W u over u = V u, |u| <= radius (V: the null-space projector),
     solved exactly by the eigenvalues of V W V (More and Sorensen; in the hard case the
-    eigenvector of the smallest eigenvalue is added to reach the boundary)."""
+    eigenvector of the smallest eigenvalue is added to reach the boundary). With
+    `newton_grad`, also the length of the unconstrained minimizer for that gradient (the
+    reduced Newton step, by the same eigenvalues; inf where V W V is not positive definite)."""
     # Range directions of V get an eigenvalue above every reduced one and no gradient.
     lam, Q = eigh_within(W, V)
     gt = Q.T @ (V @ grad)
@@ -248,7 +254,8 @@ def subproblem(grad, W, V, radius):
     lo = lo + 1e-13 * (jnp.abs(lam[0]) + jnp.abs(lam[-1]) + 1e-300)
     # (a curvature within round-off of zero counts as flat, not negative: no run to the boundary
     # along a direction with neither curvature nor gradient)
-    inside = (lam[0] > -1e-12 * (jnp.abs(lam[0]) + jnp.abs(lam[-1]))) & (norm_at(0.0) <= radius)
+    flat = 1e-12 * (jnp.abs(lam[0]) + jnp.abs(lam[-1]))
+    inside = (lam[0] > -flat) & (norm_at(0.0) <= radius)
     hard = ~inside & (norm_at(lo) <= radius)
     hi = lo + jnp.linalg.norm(gt) / radius + 1e-300  # |u(hi)| <= radius
 
@@ -264,13 +271,19 @@ def subproblem(grad, W, V, radius):
     q0 = Q[:, 0] * jnp.where(Q[:, 0] @ grad > 0, -1.0, 1.0)
     c = u @ q0  # u's round-off component along q0: tau is the root that lands on the boundary
     tau = jnp.sqrt(jnp.maximum(c**2 + radius**2 - u @ u, 0.0)) - c
-    return V @ jnp.where(hard, u + tau * q0, u)
+    u = V @ jnp.where(hard, u + tau * q0, u)
+    if newton_grad is None:
+        return u
+    newton = jnp.linalg.norm(Q.T @ (V @ newton_grad) / lam)
+    return u, jnp.where(lam[0] > flat, newton, jnp.inf)
 
 
 def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor, normal_only=False):
     """The composite step d = v + u (module docs), with the knot gaps kept above `gap_floor`
     of their length by observations added one per round; where `normal_only` (a boolean,
-    traced or not), the normal step alone while it is cut to `zeta` x radius."""
+    traced or not), the normal step alone while it is cut to `zeta` x radius. Returns d and
+    the length of the model's own minimizer, the composite step without the radius (inf where
+    the reduced Hessian is not positive definite)."""
     g, E, H = ev.G_a, ev.E, ev.H
     gaps = knots[1:] - knots[:-1]
     R = dknots[1:] - dknots[:-1]  # d(gap)/da
@@ -282,11 +295,12 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
     def solve(active):
         mask = jnp.concatenate([jnp.ones(m, bool), active])
         v, V = min_norm_step(rows, target, mask)
-        v_norm = jnp.linalg.norm(v)
+        v_full, v_norm = v, jnp.linalg.norm(v)
         v = normal_step(v, jnp.where(mask[:, None], rows, 0.0), jnp.where(mask, target, 0.0), zeta * radius)
         rest = jnp.sqrt(jnp.maximum(radius**2 - v @ v, 0.0))
-        d = v + subproblem(g + W @ v, W, V, rest)
-        return jnp.where(normal_only & (v_norm > zeta * radius), v, d)
+        u, u_newton = subproblem(g + W @ v, W, V, rest, newton_grad=g + W @ v_full)
+        d = jnp.where(normal_only & (v_norm > zeta * radius), v, v + u)
+        return d, jnp.sqrt(v_norm**2 + u_newton**2)  # v_full is in the rows' range, u in V's
 
     def violations(d, active):
         short = movable & ~active & (gaps + R @ d < gap_floor * gaps)
@@ -295,18 +309,19 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
     # round 0 solves without gap rows; each later round adds the most violated gap's row (one
     # trace of `solve` in the loop body, so that the program holds the subproblem once)
     def add_row(carry):
-        d, active, rounds = carry
+        (d, _), active, rounds = carry
         _short, excess = violations(d, active)
         active = jnp.where(rounds == 0, active, active.at[jnp.argmax(excess)].set(True))
         return solve(active), active, rounds + 1
 
     def pending(carry):
-        d, active, rounds = carry
+        (d, _), active, rounds = carry
         return (rounds == 0) | (jnp.any(violations(d, active)[0]) & (rounds <= gaps.shape[0]))
 
     active = jnp.zeros(gaps.shape, bool)
-    d, _, _ = lax.while_loop(pending, add_row, (jnp.zeros_like(g), active, 0))
-    return d
+    start = (jnp.zeros_like(g), jnp.asarray(jnp.inf, g.dtype))
+    step, _, _ = lax.while_loop(pending, add_row, (start, active, 0))
+    return step
 
 
 class TRState(eqx.Module):
@@ -411,6 +426,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
             return d * jnp.minimum(1.0, state.radius / jnp.maximum(jnp.max(jnp.abs(d)), 1e-300)), lam_qp
 
         d, lam_qp = lax.cond(fresh, new_step, lambda: (state.d, state.lam_qp))
+        newton = jnp.asarray(jnp.inf, a.dtype)  # (the QP's own minimizer is not formed)
         lam = sqp.release_inactive(ev, state.lam, lam_qp)
         size = lambda d: jnp.max(jnp.abs(d))
     else:
@@ -418,10 +434,10 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         # far from feasible: the linearized constraints ask for a relative change of the
         # parameters of at least `feasibility_first` (module docs)
         far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
-        d = lax.cond(
+        d, newton = lax.cond(
             fresh,
             lambda: trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far),
-            lambda: state.d,
+            lambda: (state.d, jnp.asarray(jnp.inf, a.dtype)),
         )
         lam, lam_qp = state.lam, state.lam_qp  # (QP multipliers only with inequality rows)
         size = jnp.linalg.norm
@@ -463,11 +479,16 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # correction saved does not double it (the uncorrected model failed at that length: the
     # minimum-time double integrator's fresh steps were rejected after every doubling)
     edge = 0.8 * (1.0 - 1e-9) * state.radius
+    # A model exact along the step (ratio 1 to 1e-9: linear constraints and a quadratic
+    # objective, the round-off of the merit at 1e-13) is trusted up to its own minimizer, with
+    # room for its normal part within zeta x radius
+    exact = jnp.abs(ratio - 1.0) <= 1e-9
+    grown = jnp.maximum(2.0 * d_norm, jnp.where(exact & jnp.isfinite(newton), newton / tr.zeta, 0.0))
     radius = jnp.where(
         accept & ~first,
         jnp.where(
             (ratio > 0.75) & (d_norm >= edge) & fresh,
-            jnp.maximum(state.radius, 2.0 * d_norm),
+            jnp.maximum(state.radius, grown),
             jnp.where(ratio < 0.25, 0.5 * d_norm, state.radius),
         ),
         jnp.where(try_soc | first, state.radius, 0.25 * d_norm),

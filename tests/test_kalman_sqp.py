@@ -287,6 +287,26 @@ def test_trust_region_subproblem_meets_its_optimality_conditions(seed, p, m, rad
         assert abs(np.linalg.norm(w) - radius) <= 1e-7 * radius
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), p=st.sampled_from([3, 5, 8]), m=st.sampled_from([0, 1, 2]))
+def test_trust_region_subproblem_reports_the_reduced_newton_length(seed, p, m):
+    """The length `subproblem` reports for `newton_grad` is that of the reduced Newton step
+    |Z (Z^T W Z)^-1 Z^T g| (NumPy, Z an orthonormal null-space basis) where the reduced
+    Hessian is positive definite, and inf where it has a negative eigenvalue."""
+    rng = np.random.default_rng(seed)
+    W, g, H, Z = _reduced(rng, p, m)
+    if rng.random() < 0.5:  # half of them convex
+        W = W @ W + 0.1 * np.eye(p)
+    _, V = _min_norm(jnp.asarray(H), jnp.zeros(m)) if m else (None, jnp.eye(p))
+    Wr = Z.T @ W @ Z
+    _, length = jax.jit(subproblem)(jnp.zeros(p), jnp.asarray(W), V, 1.0, jnp.asarray(g))
+    if np.linalg.eigvalsh(Wr).min() > 1e-8 * np.abs(Wr).max():
+        expected = np.linalg.norm(np.linalg.solve(Wr, Z.T @ g))
+        np.testing.assert_allclose(float(length), expected, rtol=1e-7)
+    elif np.linalg.eigvalsh(Wr).min() < -1e-8 * np.abs(Wr).max():
+        assert float(length) == np.inf
+
+
 def test_trust_region_subproblem_against_a_grid_in_two_dimensions():
     """Nonconvex 2-D model: the exact solution is at least as good as the best of 20,000
     points of the disc (an independent brute-force reference)."""
@@ -398,12 +418,12 @@ def test_trust_region_step_keeps_the_radius_and_the_knot_gaps():
     knots, dknots = ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0)
     step = eqx.filter_jit(trust_region_step)
     for radius in (0.1, 3.0):
-        d = step(ev, W, radius, knots, dknots, 0.8, 0.5)
+        d, _ = step(ev, W, radius, knots, dknots, 0.8, 0.5)
         assert np.linalg.norm(d) <= radius * (1 + 1e-9)
         shrink = np.diff(ctrl.knots(a0 + d)) / np.diff(knots)
         assert shrink.min() >= 0.5 - 1e-9
     assert abs(shrink.min() - 0.5) < 1e-9  # the long step is held at the floor
-    free = np.diff(ctrl.knots(a0 + step(ev, W, 3.0, knots, dknots, 0.8, 1e-6))) / np.diff(knots)
+    free = np.diff(ctrl.knots(a0 + step(ev, W, 3.0, knots, dknots, 0.8, 1e-6)[0])) / np.diff(knots)
     assert free.min() < 1e-5
 
 
