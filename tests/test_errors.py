@@ -70,6 +70,12 @@ def test_a_collapsed_segment_is_a_valid_control():
     assert np.all(np.isfinite(np.asarray(ev.H)))
     with pytest.raises(ValueError, match=r"switch times must be increasing.*t_0 <= t_1, got t_0 = 0, t_1 = -0.1"):
         jt.simulate(prob, ctrl, jnp.array([1.0, -0.1, -5.0, 2.0]))
+    # a reversal at round-off (a switch pressed onto t = 0 came back from a solve as -4.8e-40)
+    # is a collapsed segment too: the whole arc is u_2 = -5, x = -5 tf^2 / 2 = -10, v = -10
+    traj = jt.simulate(prob, ctrl, jnp.array([1.0, -4.8e-40, -5.0, 2.0]), simulator=jt.RK4(4))
+    np.testing.assert_allclose(traj.xf, [-10.0, -10.0], rtol=1e-12)
+    with pytest.raises(ValueError, match=r"switch times must be increasing"):
+        jt.simulate(prob, ctrl, jnp.array([1.0, -1e-9, -5.0, 2.0]))
 
 
 def test_negative_durations():
