@@ -66,10 +66,11 @@ doubles after a good step on the boundary (ratio > 0.75; not after a step accept
 its correction: the model without it failed at that length), halves to |d| / 2 after a poor
 one (ratio < 0.25) and falls to |d| / 4 after a rejection. Where the model was exact along
 the step (ratio 1 to 1e-9: linear constraints and a quadratic objective, whose ratios sit at
-1e-13 while every other gallery problem's boundary steps stay above 1e-6) the radius opens to
-the model's own minimizer (its length / zeta, where the reduced Hessian is positive definite):
-the two-channel transfer in 2 iterations instead of 7 (RESULTS.md). Every step integrates one candidate with
-first-order sensitivities; an accepted one that does not end the solve is integrated once more
+1e-13 from 1; the other gallery problems' boundary steps at 1e-4 or more but for 7 of 1458
+random-start steps and one of max range's, whose QP step the rule leaves alone) the radius
+opens to the model's own minimizer (its length / zeta, where the reduced Hessian is positive
+definite): the two-channel transfer in 2 iterations instead of 7 (RESULTS.md). Every step
+integrates one candidate with first-order sensitivities; an accepted one that does not end the solve is integrated once more
 for the Hessian of the Lagrangian with its multipliers (`lagrangian_hessian`; both count in
 `integrations`). The first step's candidate is the start (`init` integrates nothing, so each
 evaluation kernel is compiled once). No measurable progress (the solver's termination rule then decides between
@@ -585,7 +586,7 @@ class TrustRegion(eqx.Module):
       and the parameters. Near a feasible point a step that trades objective for a little
       feasibility asks for mu ~ dJ / |E|^2, and such a penalty, kept, makes the merit crawl
       along curved constraints (a cart-pole swing-up from rest: 1092-1165 iterations with
-      6.7e3 x the scale carried over, 267-268 with this cap, IPOPT 322-453; the minimum-time
+      6.7e3 x the scale carried over, 267-268 with this cap, IPOPT 260-453; the minimum-time
       double integrator 11 -> 8). Far from feasible it is kept: the violation's descent needs
       a penalty that does not fall with the objective's curvature (a locally infeasible
       problem with a zero objective: W -> 0 there, and the capped merit vanished into
