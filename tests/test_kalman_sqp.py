@@ -24,7 +24,7 @@ from jaxtraj._trust_region import (
     subproblem,
     trust_region_step,
 )
-from jaxtraj.baselines import solve_ipopt, solve_slsqp
+from jaxtraj.baselines import solve_slsqp
 
 _bfgs = jax.jit(bfgs_update)
 _subproblem, _min_norm = jax.jit(subproblem), jax.jit(min_norm_step)
@@ -425,42 +425,6 @@ def test_trust_region_step_keeps_the_radius_and_the_knot_gaps():
     assert abs(shrink.min() - 0.5) < 1e-9  # the long step is held at the floor
     free = np.diff(ctrl.knots(a0 + step(ev, W, 3.0, knots, dknots, 0.8, 1e-6)[0])) / np.diff(knots)
     assert free.min() < 1e-5
-
-
-def _cart_pole(t, x, u, args):
-    # (position, angle from hanging, velocity, angular rate); cart 1 kg, pole 0.3 kg, 0.5 m
-    mc, mp, length, g = 1.0, 0.3, 0.5, 9.81
-    s, c = jnp.sin(x[1]), jnp.cos(x[1])
-    den = mc + mp * s**2
-    xdd = (u[0] + mp * s * (length * x[3] ** 2 + g * c)) / den
-    thdd = -(u[0] * c + mp * length * x[3] ** 2 * c * s + (mc + mp) * g * s) / (length * den)
-    return jnp.stack([x[2], x[3], xdd, thdd])
-
-
-def test_penalty_capped_near_feasibility_on_a_cart_pole_swing_up():
-    """A cart-pole swing-up from rest to the upright rest in 2 s, |F| <= 20, min 1/2 int F^2,
-    `PiecewiseLinear(20)` from a zero force: a problem the solver was not tuned on. With the
-    merit penalty carried over whatever its size (6.7e3 x its natural scale |W| / |A|^2
-    after the steps that bought a little feasibility with objective) the trust region
-    crawled along the curved terminal constraints: 1092-1165 iterations at RK4(10..100),
-    IPOPT 260-453. With the penalty capped near feasibility (`TrustRegion.mu_max`): SUCCESS
-    at IPOPT's optimum on the same evaluation (an independent NLP solver), in at most 1.5x
-    its iterations (measured 268 against 260 here), from round-off perturbations too."""
-    prob = jt.Problem(
-        _cart_pole, np.zeros(4), lambda tf, xf, args: xf - jnp.array([0.0, jnp.pi, 0.0, 0.0]),
-        ("x", "theta - pi", "v", "omega"), running_cost=lambda t, x, u, args: 0.5 * u[0] ** 2, final_time=2.0,
-        control_lower=-20.0, control_upper=20.0, name="cart-pole",
-    )  # fmt: skip
-    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(20))
-    sim = jt.RK4(20)
-    a0 = ctrl.initial_guess(2.0, 0.0, 0.0)
-    ipopt = solve_ipopt(prob, ctrl, a0, simulator=sim)
-    assert ipopt.success
-    for start in perturbed_starts(a0, absolute=True)[:2]:
-        sol = jt.solve(prob, ctrl, start, simulator=sim, max_steps=1000)
-        assert jt.status_name(sol.status) == "SUCCESS"
-        assert abs(float(sol.objective) - ipopt.objective) <= 1e-8 * ipopt.objective
-        assert int(sol.iterations) <= 1.5 * ipopt.iterations
 
 
 def test_pure_bfgs_ends_in_another_local_minimum_on_case_3():
