@@ -220,6 +220,23 @@ def test_penalty_capped_near_feasibility_on_a_cart_pole_swing_up():
         assert int(sol.iterations) <= 1.5 * ipopt.iterations
 
 
+def test_control_values_put_back_on_their_bounds_end_a_round_off_tail():
+    """A unicycle's least time to (1, 1, pi/2) with 0 <= v <= 1, |omega| <= 1
+    (benchmarks/unseen.py): the quarter circle at full speed and turn rate, tf* = pi/2. Its
+    last QP steps left bound rows violated by ~1e-9 (the QP's round-off), so the point never
+    counted as feasible and four steps went to round-off (12 iterations, IPOPT 10); with the
+    candidate's control values put back on their bounds: SUCCESS at pi/2 in fewer iterations
+    than IPOPT on the same evaluation (measured 7), from a round-off perturbation too."""
+    prob, ctrl, a0 = _unseen_problem("unicycle-min-time")
+    ipopt = solve_ipopt(prob, ctrl, a0, simulator=SIM)
+    assert ipopt.success
+    for start in perturbed_starts(a0, absolute=True)[:2]:
+        sol = jt.solve(prob, ctrl, start, simulator=SIM)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.tf) - np.pi / 2) <= 1e-8
+        assert int(sol.iterations) < ipopt.iterations
+
+
 def test_an_exact_model_opens_the_trust_region_to_its_own_minimizer():
     """The two-channel transfer is linear-quadratic: the trust region's model is exact (ratio 1
     to 1e-13), so after the first step the radius opens to the model's minimizer and the second
