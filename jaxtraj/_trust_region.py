@@ -49,10 +49,10 @@ W's is positive definite; Goddard's rocket from the naive start: 105 iterations 
 `convexify` on H alone, 69 on the active rows, 7 block by block; a W at the round-off of the
 Lagrangian's gradient counts as no curvature, `_curvature_floor`). The radius is then the box's
 half-width (the composite step's is Euclidean), and the multipliers after an accepted step are
-the QP's (nu >= 0, zero off its active set). Control values that the QP's step leaves past
-their bounds by its round-off are put back on them before the candidate is integrated (the
-excess only, exactly 0 inside): a point on its bounds then counts as feasible (a unicycle's
-minimum time: 12 -> 7 iterations, four steps had gone to a 1e-9 bound violation). Without inequalities the composite step above.
+the QP's (nu >= 0, zero off its active set). Entries that the QP's step leaves past their
+bound rows by its round-off are put back on them before the candidate is integrated
+(`_bounds.bound_excess`, exactly 0 inside): a point on its bounds then counts as feasible (a
+unicycle's minimum time: 12 -> 7 iterations, four steps had gone to a 1e-9 bound violation). Without inequalities the composite step above.
 
 Step rule: the ratio of the actual to the predicted decrease of the augmented-Lagrangian merit
 G + lambda^T E + mu/2 |E|^2 (+ the PHR terms of the inequality rows, as the line search's
@@ -90,7 +90,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._bounds import knot_gap_rows
+from ._bounds import bound_excess, knot_gap_rows
 from ._checks import check_settings
 from ._kalman import sequential_update
 from ._kkt import (
@@ -110,7 +110,6 @@ from ._sensitivity import Evaluation, evaluate_jitted
 from ._simulate import RK4, final_state
 from ._solution import History
 from ._status import Status, failed
-from .controls import value_bounds
 
 _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the bracket)
 
@@ -461,12 +460,8 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # one integration: the candidate (the first step's is the start)
     first = state.num_steps == 0
     total = d + jnp.where(fresh, 0.0, state.d_soc)
-    if with_rows and (problem.control_lower is not None or problem.control_upper is not None):
-        # control values past their bounds by the QP's round-off are put back on them (the
-        # excess only: exactly 0 inside), so that a point on its bounds counts as feasible
-        idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
-        values = a[idx] + total[idx]
-        total = total.at[idx].add(jnp.clip(values, lo, hi) - values)
+    # entries past their bound rows by the QP's round-off are put back on them (`bound_excess`)
+    total = total + bound_excess(problem, control, a + total)
     cand = evaluate_jitted(problem, control, a + total, simulator, "forward")
     # the candidate's multipliers: the QP's with inequalities (least squares at the start)
     if with_rows:

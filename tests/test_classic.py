@@ -38,13 +38,18 @@ def test_hypersensitive_reference_matches_the_indirect_solution():
     assert abs(CLASSIC.hypersensitive_reference() - CLASSIC.HYPERSENSITIVE_REFERENCE) < 1e-7
 
 
-def _collocation():
-    """benchmarks/collocation.py: CasADi Hermite-Simpson collocation, independent of jaxtraj."""
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "collocation.py"
-    spec = importlib.util.spec_from_file_location("collocation", path)
+def _benchmark(name):
+    """The script benchmarks/<name>.py as a module."""
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _collocation():
+    """benchmarks/collocation.py: CasADi Hermite-Simpson collocation, independent of jaxtraj."""
+    return _benchmark("collocation")
 
 
 @pytest.mark.parametrize(
@@ -191,11 +196,7 @@ def test_feasibility_first_reaches_zermelo_from_far_starts():
 def _unseen_problem(name):
     """A problem of benchmarks/unseen.py (problems the solvers were not tuned on): (problem,
     control, start)."""
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "unseen.py"
-    spec = importlib.util.spec_from_file_location("unseen", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    ((prob, family, tf, u),) = [p[1:] for p in module.problems() if p[0] == name]
+    ((prob, family, tf, u),) = [p[1:] for p in _benchmark("unseen").problems() if p[0] == name]
     ctrl = prob.parametrize(family)
     return prob, ctrl, ctrl.initial_guess(tf, u, u)
 
