@@ -2,32 +2,35 @@
 
 The restricted problem is
 
-    minimize G(a)   subject to   E(a) = 0 (terminal),   C(a) <= 0 (path, on the grid),
+    minimize G(a)   subject to   E(a) = 0 (terminal),   C(a) <= 0 (path on the grid, terminal),
                                  a in the parameter box B (control bounds, ordered times).
 
 **Augmented Lagrangian.** The seed's eq. 9, L_A = f - lambda^T h + sum_i mu_i h_i^2 with one
-penalty per constraint, is used for the equalities (written with rho_i = 2 mu_i); the path
-inequalities, one multiplier per grid point and one penalty per path component, enter
-through the Powell-Hestenes-Rockafellar term:
+penalty per constraint, is used for the equalities (written with rho_i = 2 mu_i); the
+inequality rows (`inequality_block`: the path constraints at every grid point, then the
+terminal inequalities D <= 0, which include the bounds of a free tf), one multiplier per row
+and one penalty per row group (a path component over the whole grid, a terminal inequality),
+enter through the Powell-Hestenes-Rockafellar term:
 
     L_A(a) = G - lambda^T E + sum_i rho_i/2 E_i^2
-                 + sum_j (max(0, nu_j + sigma C_j)^2 - nu_j^2) / (2 sigma).
+                 + sum_j (max(0, nu_j + sigma_j C_j)^2 - nu_j^2) / (2 sigma_j).
 
-E and C here are *scaled*: each E_i is divided by the norm of its gradient at a0, each path
-component by its largest gradient norm over the grid at a0 (`constraint_scale`), so that one
-penalty value means the same curvature for every constraint (rates in rad/s and a final time
-in seconds alike). The feasibility tests use the unscaled values.
+E and C here are *scaled*: each E_i is divided by the norm of its gradient at a0, each row
+group by its largest gradient norm at a0 (over the grid for a path component;
+`constraint_scale`), so that one penalty value means the same curvature for every constraint
+(rates in rad/s and a final time in seconds alike). The feasibility tests use the unscaled
+values.
 
 **Outer iterations.** lambda starts at the least-squares estimate G_a = lambda^T H, nu at 0,
 the penalties at ALGENCAN's 10 max(1, |G|) / max(1, 1/2 |E|^2 + 1/2 |C+|^2) (clipped to
 [1e-8, 1e8]) unless `penalty_init` is given. When an inner minimization ends: lambda <-
 lambda - rho E, nu <- max(0, nu + sigma C) (clipped to `multiplier_max`); after a *solved*
 inner problem, a penalty grows by `penalty_growth` where its infeasibility (|E_i|, resp.
-max_j |max(C_j, -nu_j / sigma)|, which also measures complementarity) did not fall below
-`feasibility_ratio` times its value at the previous outer iteration (ALGENCAN's rule, per
-component as the seed's vector mu suggests; per path *component*, not per grid point: the
-contact point of a touching constraint moves between grid points, which a per-point rule
-reads as stagnation). The inner tolerance starts at `inner_tol_init` and shrinks by
+max_j |max(C_j, -nu_j / sigma_j)| over its group, which also measures complementarity) did
+not fall below `feasibility_ratio` times its value at the previous outer iteration
+(ALGENCAN's rule, per component as the seed's vector mu suggests; per path *component*, not
+per grid point: the contact point of a touching constraint moves between grid points, which a
+per-point rule reads as stagnation). The inner tolerance starts at `inner_tol_init` and shrinks by
 `inner_tol_shrink` per outer iteration down to `gtol`.
 
 **Inner iterations** (one per `step`), in preconditioned coordinates z = L^T (a - a_k) with
@@ -62,9 +65,9 @@ measures use the same reduced gradient. A family with no control-value parameter
 limits of its own inside the declared control bounds cannot honor them: the solver raises a
 ValueError.
 
-**Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma) <= `ctol` and the
-reduced gradient of the Lagrangian at the updated multipliers (= that of L_A at the old ones),
-in the scaled parameters a_i / max(|a_i|, 1) as every solver's (`jaxtraj._kkt.stationarity`),
+**Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma_j) <= `ctol` over
+every inequality row and the reduced gradient of the Lagrangian at the updated multipliers (=
+that of L_A at the old ones), in the scaled parameters a_i / max(|a_i|, 1) as every solver's (`jaxtraj._kkt.stationarity`),
 <= `gtol` (1 + |G|). STALLED: an outer iteration whose inner loop could not decrease L_A at all
 (two rejected steps in a row, none accepted) while feasible. DIVERGED: a parameter or |G|
 past 1e20 (`_status.DIVERGENCE`, IPOPT's `diverging_iterates_tol` rule, shared by every
@@ -197,9 +200,10 @@ def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
 
 class Multipliers(eqx.Module):
     """Multipliers and penalties of the scaled constraints: `lam`, `rho` (l,) for E = 0;
-    `nu` (N, q) for the path constraints C <= 0 on the grid (shape (0, 0) without path
-    constraints) and one penalty `sigma` (q,) per path component; `e_scale` (l,), `c_scale`
-    (q,): the constraint scaling (module docs)."""
+    `nu` (R,) for the inequality rows C <= 0 (`inequality_block`: the path constraints on the
+    grid, then the terminal inequalities) and one penalty `sigma` (g,) per row group (a path
+    component, a terminal inequality); `e_scale` (l,), `c_scale` (g,): the constraint scaling
+    (module docs)."""
 
     lam: jax.Array
     rho: jax.Array
@@ -209,24 +213,49 @@ class Multipliers(eqx.Module):
     c_scale: jax.Array
 
 
-def _path_arrays(ev: Evaluation):
-    """C (N, q) and C_a (N, q, np), empty when the problem has no path constraints."""
-    if ev.C is None:
-        p = ev.G_a.shape[0]
-        return jnp.zeros((0, 0), ev.G_a.dtype), jnp.zeros((0, 0, p), ev.G_a.dtype)
-    return ev.C, ev.C_a
+def inequality_block(ev: Evaluation):
+    """`(C, C_a, groups)`: the inequality rows of the augmented Lagrangian, C (R,) and C_a
+    (R, np), the path constraints on the grid (point after point, as `_kkt.inequality_rows`)
+    then the terminal inequalities D, and `groups` (R,), a static array naming each row's
+    penalty group: path component j is group j (one penalty over the grid: the contact point
+    of a touching constraint moves between grid points), terminal inequality i is group q + i.
+    Control bounds are not rows here: the projection keeps them."""
+    p = ev.G_a.shape[0]
+    C, C_a, groups = [jnp.zeros(0, ev.G_a.dtype)], [jnp.zeros((0, p), ev.G_a.dtype)], [np.zeros(0, int)]
+    q = 0
+    if ev.C is not None:
+        n, q = ev.C.shape
+        C.append(ev.C.reshape(-1))
+        C_a.append(ev.C_a.reshape(n * q, p))
+        groups.append(np.tile(np.arange(q), n))
+    if ev.D is not None:
+        C.append(ev.D)
+        C_a.append(ev.D_a)
+        groups.append(q + np.arange(ev.D.shape[0]))
+    return jnp.concatenate(C), jnp.concatenate(C_a), np.concatenate(groups)
+
+
+def _num_groups(ev: Evaluation):
+    """The penalty groups of `inequality_block`: path components, then terminal inequalities."""
+    return (0 if ev.C is None else ev.C.shape[1]) + (0 if ev.D is None else ev.D.shape[0])
+
+
+def _group_max(values, groups, num_groups):
+    """The largest of `values` (>= 0) in each group, 0 for an empty group."""
+    return jnp.maximum(jax.ops.segment_max(values, groups, num_groups), 0.0)
 
 
 def augmented_lagrangian(ev: Evaluation, m: Multipliers):
-    """`(L_A, dL_A/da)` at an evaluation (module docs), assembled from G_a, H and C_a, with the
-    scaled constraints e_scale E and c_scale C."""
-    C, C_a = _path_arrays(ev)
+    """`(L_A, dL_A/da)` at an evaluation (module docs), assembled from G_a, H and the
+    inequality rows' Jacobian, with the scaled constraints e_scale E and c_scale C."""
+    C, C_a, groups = inequality_block(ev)
     E, H = m.e_scale * ev.E, m.e_scale[:, None] * ev.H
     value = ev.G - m.lam @ E + 0.5 * jnp.sum(m.rho * E**2)
     grad = ev.G_a + (m.rho * E - m.lam) @ H
-    s = jnp.maximum(0.0, m.nu + (m.sigma * m.c_scale)[None] * C)
-    value = value + jnp.sum((s**2 - m.nu**2) / (2.0 * m.sigma[None]))
-    grad = grad + jnp.einsum("nq,nqp->p", s * m.c_scale[None], C_a)
+    sigma, scale = m.sigma[groups], m.c_scale[groups]
+    s = jnp.maximum(0.0, m.nu + sigma * scale * C)
+    value = value + jnp.sum((s**2 - m.nu**2) / (2.0 * sigma))
+    grad = grad + (s * scale) @ C_a
     return value, grad
 
 
@@ -259,16 +288,16 @@ class Metric(eqx.Module):
 
 
 def gauss_newton_metric(ev: Evaluation, m: Multipliers, a, grad, box: ParameterBox, curvature):
-    """`Metric` at `a` with M = curvature I + sum_i rho_i h_i h_i^T + sum_(active j) sigma c_j
-    c_j^T (h_i, c_j: gradients of the scaled constraints; a path point is active where
+    """`Metric` at `a` with M = curvature I + sum_i rho_i h_i h_i^T + sum_(active j) sigma_j c_j
+    c_j^T (h_i, c_j: gradients of the scaled constraints; an inequality row is active where
     nu + sigma C > 0); rows and columns of parameters on or near (`BOUND_TOLERANCE`) a bound the
     gradient pushes them out of are decoupled."""
-    C, C_a = _path_arrays(ev)
+    C, C_a, groups = inequality_block(ev)
     Hs = m.e_scale[:, None] * ev.H
-    Cs_a = m.c_scale[None, :, None] * C_a
-    active = (m.nu + (m.sigma * m.c_scale)[None] * C) > 0
-    w = jnp.where(active, m.sigma[None], 0.0)
-    gn = (Hs.T * m.rho[None, :]) @ Hs + jnp.einsum("nqp,nq,nqr->pr", Cs_a, w, Cs_a)
+    Cs_a = m.c_scale[groups][:, None] * C_a
+    sigma = m.sigma[groups]
+    w = jnp.where(m.nu + sigma * m.c_scale[groups] * C > 0, sigma, 0.0)
+    gn = (Hs.T * m.rho[None, :]) @ Hs + (Cs_a.T * w[None, :]) @ Cs_a
     n = a.shape[0]
     # Decoupled: the components on a bound that the gradient pushes out of, and those within
     # BOUND_TOLERANCE (relative to max(|bound|, 1)) of it (Bertsekas's epsilon-active set).
@@ -288,7 +317,7 @@ def al_value(problem, control, simulator, box: ParameterBox, m: Multipliers, met
     """The scalar function z -> L_A(P(metric.to_a(z))) (P = `box.project`) as a
     `jax.custom_vjp`: its forward pass is one integration with forward sensitivities, its
     gradient is the reduced gradient (`ParameterBox.reduce`) assembled from the sensitivities
-    (G_a, H, C_a), mapped to z. For optax's line search (`jax.value_and_grad`); non-finite
+    (G_a, H and the inequality rows' Jacobian), mapped to z. For optax's line search (`jax.value_and_grad`); non-finite
     evaluations give +inf."""
     dynamic, static = eqx.partition((problem, control, simulator, box, m, metric), eqx.is_array)
 
@@ -459,11 +488,12 @@ class AugmentedLagrangian(AbstractSolver):
         return evaluate_jitted(problem, control, a, simulator, self.method)
 
     def _initial_multipliers(self, ev: Evaluation):
-        C, C_a = _path_arrays(ev)
+        C, C_a, groups = inequality_block(ev)
+        num_groups = _num_groups(ev)
         e_scale = constraint_scale(ev.H)
-        # one scale per path component: its largest gradient over the grid
-        c_scale = constraint_scale(jnp.max(jnp.linalg.norm(C_a, axis=-1), axis=0, initial=0.0)[:, None])
-        E, Cs = e_scale * ev.E, c_scale[None] * C
+        # one scale per row group: its largest gradient (over the grid for a path component)
+        c_scale = constraint_scale(_group_max(jnp.linalg.norm(C_a, axis=-1), groups, num_groups)[:, None])
+        E, Cs = e_scale * ev.E, c_scale[groups] * C
         if self.penalty_init is None:
             infeas = 0.5 * (E @ E) + 0.5 * jnp.sum(jnp.maximum(Cs, 0.0) ** 2)
             rho0 = jnp.clip(10.0 * jnp.maximum(1.0, jnp.abs(ev.G)) / jnp.maximum(1.0, infeas), 1e-8, 1e8)
@@ -477,7 +507,7 @@ class AugmentedLagrangian(AbstractSolver):
             lam=lam0,
             rho=jnp.full_like(ev.E, rho0),
             nu=jnp.zeros_like(C),
-            sigma=jnp.full(C.shape[1], rho0, C.dtype),
+            sigma=jnp.full(num_groups, rho0, C.dtype),
             e_scale=e_scale,
             c_scale=c_scale,
         )
@@ -488,11 +518,6 @@ class AugmentedLagrangian(AbstractSolver):
     # ------------------------------------------------------------------ state machine
 
     def init(self, problem, control, a0, simulator, max_steps):
-        if problem.terminal_inequality is not None:
-            raise ValueError(
-                "AugmentedLagrangian does not handle terminal inequalities (`problem.terminal_inequality`) "
-                "yet; use jt.KalmanSQP() or jaxtraj.baselines.solve_slsqp."
-            )
         box = parameter_box(problem, control, self.min_duration)
         a = box.project(a0)
         ev = self._evaluate(problem, control, a, simulator)
@@ -504,7 +529,6 @@ class AugmentedLagrangian(AbstractSolver):
         metric = self._metric(ev, m, a, grad, box)
         f = jnp.float64
         hist = History.empty(max_steps, ("outer_iteration",))
-        C, _ = _path_arrays(ev)
         return _State(
             a=a,
             ev=ev,
@@ -515,7 +539,7 @@ class AugmentedLagrangian(AbstractSolver):
             opt_state=self._init_opt(jnp.zeros_like(a)),
             omega=jnp.asarray(max(self.inner_tol_init, self.gtol), f),
             prev_E=jnp.full_like(ev.E, jnp.inf),
-            prev_V=jnp.full(C.shape[1], jnp.inf, C.dtype),
+            prev_V=jnp.full(_num_groups(ev), jnp.inf, ev.G.dtype),
             inner_count=jnp.array(0, jnp.int32),
             inner_accepted=jnp.array(0, jnp.int32),
             rejected=jnp.array(0, jnp.int32),
@@ -592,11 +616,13 @@ class AugmentedLagrangian(AbstractSolver):
         solved = pg <= state.omega * scale
         inner_done = solved | (inner_count >= self.max_inner) | stuck
 
-        C, _ = _path_arrays(ev)
-        Es, Cs = m.e_scale * ev.E, m.c_scale[None] * C  # scaled: the penalty rule and the updates
-        V = jnp.maximum(C, -m.nu / (m.sigma * m.c_scale)[None])  # unscaled: the tests
-        Vs = jnp.max(jnp.abs(m.c_scale[None] * V), axis=0, initial=0.0)  # per path component
-        absV = jnp.max(jnp.abs(V), axis=0, initial=0.0)
+        C, _, groups = inequality_block(ev)
+        num_groups = _num_groups(ev)
+        scale_r, sigma_r = m.c_scale[groups], m.sigma[groups]
+        Es, Cs = m.e_scale * ev.E, scale_r * C  # scaled: the penalty rule and the updates
+        V = jnp.maximum(C, -m.nu / (sigma_r * scale_r))  # unscaled: the tests
+        Vs = _group_max(jnp.abs(scale_r * V), groups, num_groups)  # per row group
+        absV = _group_max(jnp.abs(V), groups, num_groups)
         maxE = jnp.max(jnp.abs(ev.E), initial=0.0)
         maxV = jnp.max(V, initial=-jnp.inf)
         feasible = (maxE <= self.ctol) & (maxV <= self.ctol)
@@ -606,7 +632,7 @@ class AugmentedLagrangian(AbstractSolver):
 
         cap = self.multiplier_max
         lam1 = jnp.clip(m.lam - m.rho * Es, -cap, cap)
-        nu1 = jnp.clip(jnp.maximum(0.0, m.nu + m.sigma[None] * Cs), 0.0, cap)
+        nu1 = jnp.clip(jnp.maximum(0.0, m.nu + sigma_r * Cs), 0.0, cap)
         # Penalties grow only after a solved inner problem (an unfinished one says nothing
         # about the penalty being too small).
         grow_E = solved & (jnp.abs(Es) > self.feasibility_ratio * state.prev_E) & (jnp.abs(ev.E) > self.ctol)
@@ -662,7 +688,7 @@ class AugmentedLagrangian(AbstractSolver):
         )
 
     def progress(self, state: _State):
-        C, _ = _path_arrays(state.ev)
+        C, _, _ = inequality_block(state.ev)
         return {
             "outer": state.num_outer,
             "objective": state.ev.G,

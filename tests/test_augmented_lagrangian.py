@@ -79,7 +79,7 @@ def test_gradient_is_the_sensitivity_gradient():
     m = Multipliers(
         lam=jnp.asarray(rng.normal(size=3)),
         rho=jnp.full(3, 7.0),
-        nu=jnp.asarray(np.abs(rng.normal(size=ev.C.shape))),
+        nu=jnp.asarray(np.abs(rng.normal(size=ev.C.size))),
         sigma=jnp.full(1, 3.0),
         e_scale=jnp.asarray(rng.uniform(0.5, 2.0, 3)),
         c_scale=jnp.full(1, 0.7),

@@ -337,8 +337,12 @@ def terminal_inequality_problem(cap):
     )
 
 
+# KalmanSearch and AugmentedLagrangian stop on their own (looser) stationarity tests
+TERMINAL_INEQUALITY_ATOL = {"kalman-search": 1e-4, "augmented-lagrangian": 1e-7}
+
+
 @pytest.mark.parametrize("cap", [1.0, 3.0])
-@pytest.mark.parametrize("solver", ["default", "trust-region", "kalman-search", "slsqp"])
+@pytest.mark.parametrize("solver", ["default", "trust-region", "kalman-search", "augmented-lagrangian", "slsqp"])
 def test_terminal_inequality_reaches_the_analytic_optimum(cap, solver):
     prob = terminal_inequality_problem(cap)
     ctrl = prob.parametrize(jt.controls.PiecewiseLinear(3))
@@ -350,23 +354,20 @@ def test_terminal_inequality_reaches_the_analytic_optimum(cap, solver):
         assert res.success
         J, params = res.objective, res.params
     else:
-        solvers = {"default": None, "trust-region": TRUST_REGION, "kalman-search": jt.KalmanSearch()}
+        solvers = {
+            "default": None,
+            "trust-region": TRUST_REGION,
+            "kalman-search": jt.KalmanSearch(),
+            "augmented-lagrangian": jt.AugmentedLagrangian(),
+        }
         sol = jt.solve(prob, ctrl, a0, solvers[solver], simulator=SIM)
         assert jt.status_name(sol.status) == "SUCCESS"
         J, params = float(sol.objective), sol.params
         assert float(sol.terminal_inequality[0]) <= 1e-8
         np.testing.assert_allclose(float(sol.terminal_inequality[0]), min(cap, 2.0) - cap, atol=1e-5)
-    # KalmanSearch stops on its own (looser) stationarity test
-    np.testing.assert_allclose(J, want, atol=1e-8 if solver != "kalman-search" else 1e-4)
+    # measured: AugmentedLagrangian 5.2e-9 (cap 1), 1.3e-12 (cap 3)
+    np.testing.assert_allclose(J, want, atol=TERMINAL_INEQUALITY_ATOL.get(solver, 1e-8))
     np.testing.assert_allclose(np.asarray(ctrl(params, np.linspace(0, 1, 5)))[:, 0], u, atol=1e-3)
-
-
-def test_solvers_without_terminal_inequalities_refuse_them():
-    prob = terminal_inequality_problem(1.0)
-    ctrl = prob.parametrize(jt.controls.PiecewiseLinear(3))
-    a0 = ctrl.initial_guess(1.0, 0.0, 0.0)
-    with pytest.raises(ValueError, match="terminal inequalities"):
-        jt.solve(prob, ctrl, a0, jt.AugmentedLagrangian(), simulator=SIM)
 
 
 def min_time_double_integrator():
@@ -450,7 +451,7 @@ def test_tf_bounds_reach_the_analytic_optimum():
     assert prob.terminal_inequality_names == ("tf lower bound", "tf upper bound")
     ctrl = jt.controls.PiecewiseLinear(2)
     a0 = ctrl.initial_guess(1.0, 1.0, -1.0)
-    for solver in (None, jt.KalmanSearch()):
+    for solver in (None, jt.KalmanSearch(), jt.AugmentedLagrangian()):
         sol = jt.solve(prob, ctrl, a0, solver, simulator=SIM)
         assert jt.status_name(sol.status) == "SUCCESS"
         assert abs(float(sol.tf) - 2.0) < 1e-6 and abs(float(sol.objective) - 0.75) < 1e-6
