@@ -106,7 +106,7 @@ from ._kkt import (
     stationarity,
     with_knot_gaps,
 )
-from ._sensitivity import Evaluation, evaluate_jitted
+from ._sensitivity import Evaluation, evaluate_jitted, path_values
 from ._simulate import RK4, final_state
 from ._solution import History
 from ._status import Status, failed
@@ -117,17 +117,32 @@ _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the brac
 def lagrangian_hessian(problem, control, a, simulator, lam):
     """Hessian of the Lagrangian G + lambda^T [E; C] at `a` (zero if not finite; `lam` holds
     the multipliers of E, then, for a problem with inequalities, those of its inequality rows
-    (`_kkt.inequality_rows`)): forward over reverse autodiff of the plain simulation with RK4
-    and terminal equalities only (faster than forward over the forward sensitivities;
-    benchmarks/RESULTS.md; the RK4 step is rematerialized in the reverse pass, which compiles
-    faster), forward over forward otherwise (diffrax runs with forward-mode
-    adjoints only; the path rows live on the sensitivity grid)."""
-    if isinstance(simulator, RK4) and lam.shape[0] == problem.num_constraints:
+    (`_kkt.inequality_rows`: path points, terminal inequalities, then the bound rows, which are
+    linear in a and add no curvature)). With RK4: forward over reverse autodiff of the plain
+    simulation (dense on the grid where there are path constraints), the RK4 step
+    rematerialized in the reverse pass, which compiles faster; 1-5.5x faster warm than forward
+    over the forward sensitivities, most where there are many parameters and rows
+    (benchmarks/RESULTS.md). Forward over forward otherwise (diffrax runs with forward-mode
+    adjoints only)."""
+    if isinstance(simulator, RK4):
+        m = problem.num_constraints
 
         def lagrangian(a):
-            xf, _ = final_state(problem, control, a, simulator)
+            if problem.path is None:
+                xf, _ = final_state(problem, control, a, simulator)
+                C = jnp.zeros(0, a.dtype)
+            else:
+                xf, (_, C, _) = path_values(problem, control, a, simulator)
             tf = control.tf(a)
-            return problem.objective(tf, xf, problem.args) + lam @ problem.terminal(tf, xf, problem.args)
+            D = jnp.zeros(0, a.dtype)
+            if problem.terminal_inequality is not None:
+                D = problem.terminal_inequality(tf, xf, problem.args)
+            weights = lam[m : m + C.size + D.shape[0]]
+            return (
+                problem.objective(tf, xf, problem.args)
+                + lam[:m] @ problem.terminal(tf, xf, problem.args)
+                + weights @ jnp.concatenate([C.reshape(-1), D])
+            )
 
         W = jax.jacfwd(jax.grad(lagrangian))(a)
     else:

@@ -13,7 +13,7 @@ from hypothesis import given, settings, strategies as st
 import jaxtraj as jt
 from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
-from jaxtraj._kkt import kkt_outcome, lagrangian_gradient, merit
+from jaxtraj._kkt import constraint_rows, kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
 from jaxtraj._trust_region import (
@@ -608,13 +608,28 @@ def test_trust_region_from_a_collapsed_segment():
     assert bool(sol.history.accepted[0])
 
 
-def test_lagrangian_hessian_forward_over_reverse_matches_forward_over_forward():
-    """The RK4 path (forward over reverse autodiff of the plain simulation) against forward
-    autodiff of the forward-sensitivity gradient of the Lagrangian (the other simulators' path)."""
-    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(1)
-    sim, lam = jt.RK4(30), jnp.array([0.3, -1.2, 0.7])
+@pytest.mark.parametrize(
+    "name", ["case-1", "bryson-denham", "goddard", "capped-terminal", "min-time-double-integrator"]
+)
+def test_lagrangian_hessian_forward_over_reverse_matches_forward_over_forward(name):
+    """The RK4 path (forward over reverse autodiff of the plain simulation, dense where there
+    are path rows) against forward autodiff of the forward-sensitivity gradient of the
+    Lagrangian (the other simulators' path), with random multipliers on every row: terminal
+    equalities (case 1), path points (Bryson-Denham, Goddard), terminal inequalities (capped
+    terminal), control-bound rows (minimum-time double integrator, Goddard; linear)."""
+    if name == "case-1":
+        prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(1)
+    else:
+        entry = jt.problems.classic.get(name)
+        prob, ctrl, a0 = entry.problem, entry.control, entry.start
+    sim = jt.RK4(6)
+    rng = np.random.default_rng(3)
+    a0 = a0 + 0.05 * rng.normal(size=a0.shape) * np.maximum(1.0, np.abs(a0))
+    ev = evaluate_restricted(prob, ctrl, a0, sim)
+    lam = jnp.asarray(rng.normal(size=constraint_rows(ev).shape[0]))
     W = jax.jit(lambda a: lagrangian_hessian(prob, ctrl, a, sim, lam))(a0)  # jitted: eagerly op by op
     ref = jax.jit(jax.jacfwd(lambda a: lagrangian_gradient(evaluate_restricted(prob, ctrl, a, sim), lam)))(a0)
+    assert float(jnp.abs(ref).max()) > 1e-3
     np.testing.assert_allclose(W, 0.5 * (ref + ref.T), rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
 
 
