@@ -282,6 +282,7 @@ class KalmanSQP(AbstractSolver):
             # and the working rows (noise-free as E's: `r_rel`).
             C, C_a = rows
             n_rows = C.shape[0]
+            n_checked = n_rows + (2 * d.shape[0] if radius is not None else 0)
             if radius is not None:
                 eye = jnp.eye(d.shape[0], dtype=d.dtype)
                 C = jnp.concatenate([C, jnp.full(2 * d.shape[0], -radius, d.dtype)])
@@ -294,11 +295,11 @@ class KalmanSQP(AbstractSolver):
             threshold = 0.01 * self.ctol
             max_rounds = 4 * d.shape[0] + 20
 
-            # Elastic mode. If the linearized constraints are inconsistent (a row, not a step
-            # bound, violated by more than `ctol` that neither E's rows nor the working ones
-            # let the step meet; or one that E's rows alone pin, its variance left by them
-            # below `ELASTIC_PINNED` of its prior: at a start at rest, the bounds of a control
-            # that E's rows alone fix), the equalities are filtered again with one noise for
+            # Elastic mode. If the linearized constraints are inconsistent (the hard step
+            # leaves a row, the step bounds |d_i| <= radius included, violated by more than
+            # `ctol`; or one that E's rows alone pin, its variance left by them below
+            # `ELASTIC_PINNED` of its prior: at a start at rest, the bounds of a control that
+            # E's rows alone fix), the equalities are filtered again with one noise for
             # all, `elastic` x the mean of h P h^T: a penalty on |H d + E|^2 (E as the user
             # scaled it, so that repeated elastic steps end at a stationary point of that
             # violation, which `locally_infeasible` recognizes) instead of hard rows. The step
@@ -310,6 +311,11 @@ class KalmanSQP(AbstractSolver):
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
             B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
 
+            # The excess is the final step's (not the active set's internal one): refiltered
+            # through a nearly singular covariance, the working rows can leave the step past a
+            # bound the active set met (the moon lander's start: a flat switch time of
+            # variance 1e8 took E's step of 2 in tf past a radius of 1 and moved by -1, by -0.2
+            # after a 1e-13 perturbation; the scaled step followed round-off; RESULTS.md).
             # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
@@ -317,7 +323,7 @@ class KalmanSQP(AbstractSolver):
                 k, _ = carry
                 elastic = k == 1
                 d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r), refine=~elastic)
-                d, P2, active, _, excess = inequality_step(
+                d, P2, active, _, _ = inequality_step(
                     d_eq,
                     P_eq,
                     jnp.where(elastic, B_soft, B),
@@ -331,7 +337,7 @@ class KalmanSQP(AbstractSolver):
                     max_rounds,
                     num_equalities=jnp.where(elastic, 0, m),
                 )
-                return k + 1, (d, P2, active, jnp.max(excess[:n_rows]))
+                return k + 1, (d, P2, active, jnp.max((C + C_a @ d)[:n_checked]))
 
             def again(carry):
                 k, (*_, excess) = carry

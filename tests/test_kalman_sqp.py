@@ -11,12 +11,14 @@ from helpers import LINE_SEARCH, ROUNDOFF_EPS, TRUST_REGION, perturbed_starts
 from hypothesis import given, settings, strategies as st
 
 import jaxtraj as jt
+from jaxtraj._bounds import knot_gap_rows
 from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
-from jaxtraj._kkt import constraint_rows, kkt_outcome, lagrangian_gradient, merit
+from jaxtraj._kkt import active_rows, constraint_rows, kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import evaluate_restricted
 from jaxtraj._trust_region import (
+    _curvature_floor,
     convexify_blockwise,
     lagrangian_hessian,
     min_norm_step,
@@ -679,3 +681,29 @@ def test_path_constraint_analytic_optimum(segments, hessian):
         simulator=jt.RK4(segments),
     )
     assert abs(float(free.objective) - 6.0) < 1e-9
+
+
+def test_trust_region_qp_step_stays_in_its_box_when_the_equalities_cannot():
+    """The moon lander's naive start has two equal thrust levels, so its switch time has zero
+    gradient, curvature and constraint coupling (variance ~1e8 in the QP's metric). E's rows
+    ask for a step of 2 in tf; the radius allows 1. The hard QP's working rows, refiltered
+    through that near-singular covariance, left tf's step at 2 and moved the flat switch time
+    by -1 (by -0.2 after a 1e-13 perturbation of the start); scaled to the radius, the step
+    followed round-off, and so did the solve (7 to 15 iterations). The step's final excess
+    over every row, the box |d_i| <= radius included, now decides the elastic step: the step
+    stays in the box from the start and its round-off perturbations (the flat switch time
+    still moves by what round-off gives it, -1e-4 to 1: a free direction of the model), and
+    the solve takes at most IPOPT's 8 iterations (measured 6-7)."""
+    entry = jt.problems.classic.get("moon-lander")
+    sim, solver = jt.RK4(40), jt.KalmanSQP()
+    first = eqx.filter_jit(lambda s: solver.step(entry.problem, entry.control, sim, s))
+    for start in perturbed_starts(entry.start, absolute=True):
+        s = first(init_state(solver, entry.problem, entry.control, start, sim, 20))  # evaluates the start
+        A = active_rows(s.ev, solver.path_active)
+        B = convexify_blockwise(s.W, A, solver.min_curvature, _curvature_floor(s.ev, s.lam, s.a))
+        knots, dknots = entry.control.knots(s.a), jax.jacfwd(entry.control.knots)(s.a)
+        d, _ = solver.direction(s.ev, B, s.lam, knots, dknots, s.radius, knot_gap_rows(entry.control, s.a))
+        assert float(jnp.max(jnp.abs(d))) <= float(s.radius) * (1 + 1e-9)
+        sol = jt.solve(entry.problem, entry.control, start, simulator=sim)
+        assert jt.status_name(sol.status) == "SUCCESS" and int(sol.iterations) <= 8
+        assert abs(float(sol.objective) - entry.reference) < 1e-8
