@@ -12,7 +12,7 @@ import pytest
 from helpers import energy_problem
 
 import jaxtraj as jt
-from jaxtraj._sensitivity import _affine_segment_basis
+from jaxtraj._sensitivity import affine_segment_basis
 from jaxtraj._simulate import segment_data
 
 SIM = jt.RK4(20)
@@ -102,7 +102,7 @@ def test_declared_affinity_matches_a_probe():
         jac = jax.jacfwd(segment_data, argnums=1)
         j1, j2 = (np.asarray(jac(ctrl, jnp.asarray(rng.uniform(0.5, 2.0, ctrl.num_params)))) for _ in range(2))
         assert ctrl.affine == bool(np.allclose(j1, j2, rtol=1e-12, atol=1e-12)), ctrl
-        assert (_affine_segment_basis(ctrl, jnp.zeros(ctrl.num_params)) is not None) <= ctrl.affine
+        assert (affine_segment_basis(ctrl, jnp.zeros(ctrl.num_params)) is not None) <= ctrl.affine
 
 
 @pytest.mark.parametrize(

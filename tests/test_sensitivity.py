@@ -9,7 +9,8 @@ import pytest
 from helpers import ALL_CASES, counting_problem, family_examples, rel_err
 
 import jaxtraj as jt
-from jaxtraj._sensitivity import _affine_segment_basis
+from jaxtraj._sensitivity import affine_segment_basis, segment_hessian
+from jaxtraj._simulate import final_state
 
 # The unit-solution method differentiates the ODE, forward mode the RK4 map; they differ by
 # the O(h^4) derivative of the step with respect to the knots (16x smaller per halving of h,
@@ -124,7 +125,7 @@ def test_forward_equals_naive_jacfwd_of_the_simulation(case):
     dense `simulate` (a different code path through the same integrator). Case 5's control is
     affine with rank-3 segment rows, so it takes the reduced-tangent path."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
-    assert (_affine_segment_basis(ctrl, a0) is None) == (case == 1)
+    assert (affine_segment_basis(ctrl, a0) is None) == (case == 1)
     sim = jt.RK4(40)
     J = jt.sensitivities(prob, ctrl, a0, "forward", simulator=sim)[1]
     J_dense = jax.jacfwd(lambda a: jt.simulate(prob, ctrl, a, simulator=sim).x[-1])(a0)
@@ -146,7 +147,36 @@ def test_affine_basis_inside_a_jit_equals_the_basis_outside(ctrl):
     inside a jit; the segment Jacobian does not use them, so the reduced-tangent basis is
     found there too, from one compiled program (not op by op, which fails on them)."""
     a = jnp.linspace(0.2, 0.9, ctrl.num_params)
-    outside = _affine_segment_basis(ctrl, a)
-    inside = eqx.filter_jit(_affine_segment_basis)(ctrl, a)
+    outside = affine_segment_basis(ctrl, a)
+    inside = eqx.filter_jit(affine_segment_basis)(ctrl, a)
     assert outside is not None and inside is not None
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))
+
+
+@pytest.mark.parametrize(
+    "name", ["case-4", "hypersensitive", "brachistochrone", "orbit-raising", "free-initial-state", "design-parameter"]
+)
+def test_segment_hessian_matches_forward_over_reverse(name):
+    """The Hessian of a terminal function by segments (chained segment Jacobians, costates,
+    local Hessians under vmap) against forward over reverse autodiff of the whole RK4
+    simulation: free and fixed tf, several controls, a free initial state, a design
+    parameter, time-varying dynamics."""
+    if name == "case-4":
+        prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    else:
+        entry = jt.problems.classic.get(name)
+        prob, ctrl, a0 = entry.problem, entry.control, entry.start
+    sim = jt.RK4(5)
+    rng = np.random.default_rng(7)
+    a0 = jnp.asarray(a0 + 0.05 * rng.normal(size=a0.shape) * np.maximum(1.0, np.abs(a0)))
+    w = jnp.asarray(rng.normal(size=prob.num_constraints))
+
+    def terminal(tf, xf):
+        return prob.objective(tf, xf, prob.args) + w @ prob.terminal(tf, xf, prob.args) + 0.3 * tf**2
+
+    basis = affine_segment_basis(ctrl, a0)
+    assert basis is not None
+    W = jax.jit(lambda a: segment_hessian(prob, ctrl, a, sim, terminal, basis))(a0)
+    ref = jax.jit(jax.hessian(lambda a: terminal(ctrl.tf(a), final_state(prob, ctrl, a, sim)[0])))(a0)
+    assert float(jnp.abs(ref).max()) > 1e-3
+    np.testing.assert_allclose(W, ref, rtol=1e-10, atol=1e-10 * float(jnp.abs(ref).max()))
