@@ -1,4 +1,4 @@
-"""Problems the solvers were not tuned on (issue 20): nine textbook problems written as a new
+"""Problems the solvers were not tuned on (issue 20): fourteen textbook problems written as a new
 user would write them, each from a zero or constant start, with the default solver, IPOPT and
 SLSQP on the same evaluation (RK4(40) per segment).
 
@@ -15,6 +15,12 @@ at 0.5 on the grid (tf* = 2.5); a cart-pole swing-up from rest to the upright re
 (1, 1, pi/2) with 0 <= v <= 1, |omega| <= 1 (pi/2); the double integrator to x(1) >= 1 at rest
 (a terminal inequality, J* = 6); minimum tf + 1/2 int u^2 to rest at 1 (J* = 18^(1/4) + 6 /
 18^(3/4)); the unicycle into a circle of radius 0.5 in least time (a terminal inequality).
+Added in session 29: the moon lander's least fuel with a saturated spline (0 <= u <= 3)
+instead of free switch times (J* = sqrt(68)); Bryson-Denham's x <= 1/9 with a free tf and
+min tf + 1/2 int u^2; linear tangent steering (thrust angle, unit acceleration) to y = 5,
+vx = 45, vy = 0 in least time; a pendulum swing-up with |u| <= 1 in 5 s (min 1/2 int u^2), and
+with |u| <= 0.5 in least time with six constant pieces and free switch times (more pieces than switches: the
+optimum collapses a segment).
 
 Run: `python benchmarks/unseen.py [--problems cart-pole] [--random 32]`.
 """
@@ -30,7 +36,7 @@ import numpy as np
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
-from jaxtraj.controls import PiecewiseConstant, PiecewiseLinear
+from jaxtraj.controls import PiecewiseConstant, PiecewiseLinear, SaturatedSpline
 
 SIM = jt.RK4(40)
 
@@ -59,6 +65,14 @@ def _cart_pole(t, x, u, args):
 
 def _unicycle(t, x, u, args):
     return jnp.stack([u[0] * jnp.cos(x[2]), u[0] * jnp.sin(x[2]), u[1]])
+
+
+def _pendulum(t, x, u, args):
+    return jnp.array([x[1], -jnp.sin(x[0]) + u[0]])
+
+
+def _steering(t, x, u, args):  # (x, y, vx, vy), unit acceleration along the angle u
+    return jnp.array([x[2], x[3], jnp.cos(u[0]), jnp.sin(u[0])])
 
 
 def _at(target):
@@ -99,6 +113,17 @@ def problems():
         ("unicycle-circle", P(_unicycle, [0.0, 0.0, 0.0], _none, (), **box2,
                               terminal_inequality=lambda tf, xf, args: jnp.sum((xf[:2] - jnp.array([2.0, 1.0])) ** 2)[None] - 0.25,
                               terminal_inequality_names=("in circle",)), PiecewiseLinear(6, channels=2), 3.0, 0.5),
+        ("lander-spline", P(lambda t, x, u, args: jnp.array([x[1], u[0] - 1.5]), [10.0, -2.0], _at([0.0, 0.0]), ("h", "v"),
+                            running_cost=lambda t, x, u, args: u[0]), SaturatedSpline(8, 2, 0.0, 3.0), 4.0, 1.5),
+        ("bryson-denham-free-tf", P(_double_integrator, [0.0, 1.0], _at([0.0, -1.0]), ("x", "v"),
+                                    objective=lambda tf, xf, args: tf, running_cost=half_u2, state_upper=[1 / 9, np.inf]),
+         PiecewiseLinear(10), 1.0, 0.0),
+        ("linear-tangent", P(_steering, [0.0, 0.0, 0.0, 0.0], lambda tf, xf, args: jnp.array([xf[1] - 5.0, xf[2] - 45.0, xf[3]]),
+                             ("y", "vx", "vy")), PiecewiseLinear(8), 10.0, 0.5),
+        ("pendulum-swing-up", P(_pendulum, [0.0, 0.0], _at([np.pi, 0.0]), ("theta", "omega"), running_cost=half_u2,
+                                final_time=5.0, control_lower=-1.0, control_upper=1.0), PiecewiseLinear(20), 5.0, 0.0),
+        ("pendulum-min-time", P(_pendulum, [0.0, 0.0], _at([np.pi, 0.0]), ("theta", "omega"), control_lower=-0.5,
+                                control_upper=0.5), PiecewiseConstant(6, free_times=True), 10.0, 0.0),
     ]  # fmt: skip
 
 
