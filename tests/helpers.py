@@ -106,3 +106,16 @@ def energy_problem(**changes):
         args=base.args,
         **changes,
     )
+
+
+def moved_start(name, seed):
+    """`(problem, control, start)` of Earth-Mars case `case-N` or of a gallery problem, the
+    start moved by 5 % of max(|a_i|, 1) in a random direction (a point off every symmetry
+    of the start, for derivative checks)."""
+    if name.startswith("case-"):
+        prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(int(name[5:]))
+    else:
+        entry = jt.problems.classic.get(name)
+        prob, ctrl, a0 = entry.problem, entry.control, entry.start
+    rng = np.random.default_rng(seed)
+    return prob, ctrl, jnp.asarray(a0 + 0.05 * rng.normal(size=a0.shape) * np.maximum(1.0, np.abs(a0)))
