@@ -283,6 +283,7 @@ class KalmanSQP(AbstractSolver):
             C, C_a = rows
             n_rows = C.shape[0]
             n_checked = n_rows + (2 * d.shape[0] if radius is not None else 0)
+            box_slack = 0.0 if radius is None else 1e-6 * radius  # (the rows are d_i - radius)
             if radius is not None:
                 eye = jnp.eye(d.shape[0], dtype=d.dtype)
                 C = jnp.concatenate([C, jnp.full(2 * d.shape[0], -radius, d.dtype)])
@@ -295,9 +296,8 @@ class KalmanSQP(AbstractSolver):
             threshold = 0.01 * self.ctol
             max_rounds = 4 * d.shape[0] + 20
 
-            # Elastic mode. If the linearized constraints are inconsistent (the hard step
-            # leaves a row, the step bounds |d_i| <= radius included, violated by more than
-            # `ctol`; or one that E's rows alone pin, its variance left by them below
+            # Elastic mode. If the linearized constraints are inconsistent (the hard step is,
+            # as defined below; or a row that E's rows alone pin, its variance left by them below
             # `ELASTIC_PINNED` of its prior: at a start at rest, the bounds of a control that
             # E's rows alone fix), the equalities are filtered again with one noise for
             # all, `elastic` x the mean of h P h^T: a penalty on |H d + E|^2 (E as the user
@@ -311,11 +311,16 @@ class KalmanSQP(AbstractSolver):
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
             B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
 
-            # The excess is the final step's (not the active set's internal one): refiltered
-            # through a nearly singular covariance, the working rows can leave the step past a
-            # bound the active set met (the moon lander's start: a flat switch time of
-            # variance 1e8 took E's step of 2 in tf past a radius of 1 and moved by -1, by -0.2
-            # after a 1e-13 perturbation; the scaled step followed round-off; RESULTS.md).
+            # Inconsistent: the active set's own excess over the problem's rows is above `ctol`,
+            # or the final step (its working rows refiltered) leaves a problem's row past 100
+            # `ctol` or a step bound past 1e-6 of the radius. Refiltered through a nearly
+            # singular covariance the working rows can leave the step past a bound the active
+            # set met (the moon lander's start: a flat switch time of variance 1e8 took E's
+            # step of 2 in tf past a radius of 1 and moved by -1, by -0.2 after a 1e-13
+            # perturbation; the scaled step followed round-off; RESULTS.md). The margin of 100
+            # `ctol` leaves the refiltering's round-off at a degenerate vertex alone (a unicycle
+            # with every control on its bound: past `ctol` by round-off, and an elastic step
+            # there stalled; a pendulum's minimum time needs the rows' final excess counted).
             # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
@@ -323,7 +328,7 @@ class KalmanSQP(AbstractSolver):
                 k, _ = carry
                 elastic = k == 1
                 d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r), refine=~elastic)
-                d, P2, active, _, _ = inequality_step(
+                d, P2, active, _, excess = inequality_step(
                     d_eq,
                     P_eq,
                     jnp.where(elastic, B_soft, B),
@@ -337,13 +342,19 @@ class KalmanSQP(AbstractSolver):
                     max_rounds,
                     num_equalities=jnp.where(elastic, 0, m),
                 )
-                return k + 1, (d, P2, active, jnp.max((C + C_a @ d)[:n_checked]))
+                final = C + C_a @ d
+                inconsistent = (
+                    (jnp.max(excess[:n_rows], initial=-jnp.inf) > self.ctol)
+                    | (jnp.max(final[:n_rows], initial=-jnp.inf) > 100.0 * self.ctol)
+                    | (jnp.max(final[n_rows:n_checked], initial=-jnp.inf) > box_slack)
+                )
+                return k + 1, (d, P2, active, inconsistent)
 
             def again(carry):
-                k, (*_, excess) = carry
-                return (k == 0) | ((k == 1) & (pinned_violated | (excess > self.ctol)))
+                k, (*_, inconsistent) = carry
+                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent))
 
-            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.zeros((), d.dtype))
+            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False))
             _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
             active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t, collapse=self.path_active)

@@ -642,7 +642,7 @@ class TrustRegion(eqx.Module):
       once the violation |E|^2/2 + |max(C, 0)|^2/2 has halved since the last cap, so that it
       happens finitely often on the way to feasibility. Capping at every step let a
       pendulum's minimum time (benchmarks/unseen.py) cycle through 8 accepted points
-      (MAX_ITERATIONS after 1849 iterations; now SUCCESS in 127, IPOPT 419; cart-pole
+      (MAX_ITERATIONS after 1849 iterations; now SUCCESS in 122, IPOPT 419; cart-pole
       268 -> 271).
       benchmarks/RESULTS.md.
     - `feasibility_first`: far from feasible, |E| > feasibility_first x |H|_F |a|, the normal

@@ -228,7 +228,7 @@ def test_penalty_cap_waits_for_the_violation_to_halve_on_a_pendulum_min_time():
     merit changed under the iterates: an 8-step cycle of accepted points (violation 2e-3 to
     6e-2), MAX_ITERATIONS after 1849 iterations. The cap now waits until the violation has
     halved since the last one: SUCCESS at IPOPT's optimum (an independent NLP solver on the
-    same evaluation) in fewer iterations (measured 127 against 419). From round-off
+    same evaluation) in fewer iterations (measured 122 against 419). From round-off
     perturbations of the start the solve ends SUCCESS or, at a point that meets the KKT test
     at 1e-6 with |E| 1.4-1.9e-10 (above `ctol` = 1e-10; a collapsing second segment leaves the
     last steps to round-off), STALLED within 3.3e-6 of the optimum (open, issue 20): never the

@@ -683,9 +683,9 @@ def test_trust_region_qp_step_stays_in_its_box_when_the_equalities_cannot():
     ask for a step of 2 in tf; the radius allows 1. The hard QP's working rows, refiltered
     through that near-singular covariance, left tf's step at 2 and moved the flat switch time
     by -1 (by -0.2 after a 1e-13 perturbation of the start); scaled to the radius, the step
-    followed round-off, and so did the solve (7 to 15 iterations). The step's final excess
-    over every row, the box |d_i| <= radius included, now decides the elastic step: the step
-    stays in the box from the start and its round-off perturbations (the flat switch time
+    followed round-off, and so did the solve (7 to 15 iterations). The final step's excess
+    over the box |d_i| <= radius (past 1e-6 of it) now counts in the test for the elastic
+    step: the step stays in the box from the start and its round-off perturbations (the flat switch time
     still moves by what round-off gives it, -1e-4 to 1: a free direction of the model), and
     the solve takes at most IPOPT's 8 iterations (measured 6-7)."""
     entry = jt.problems.classic.get("moon-lander")
@@ -697,7 +697,7 @@ def test_trust_region_qp_step_stays_in_its_box_when_the_equalities_cannot():
         B = convexify_blockwise(s.W, A, solver.min_curvature, _curvature_floor(s.ev, s.lam, s.a))
         knots, dknots = entry.control.knots(s.a), jax.jacfwd(entry.control.knots)(s.a)
         d, _ = solver.direction(s.ev, B, s.lam, knots, dknots, s.radius, knot_gap_rows(entry.control, s.a))
-        assert float(jnp.max(jnp.abs(d))) <= float(s.radius) * (1 + 1e-9)
+        assert float(jnp.max(jnp.abs(d))) <= float(s.radius) * (1 + 1e-6)
         sol = jt.solve(entry.problem, entry.control, start, simulator=sim)
         assert jt.status_name(sol.status) == "SUCCESS" and int(sol.iterations) <= 8
         assert abs(float(sol.objective) - entry.reference) < 1e-8
