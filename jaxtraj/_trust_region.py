@@ -551,7 +551,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     new_a, new_ev, new_lam = new((a + total, cand, lam_c), (a, ev, state.lam))
     maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
     feasible = is_feasible(new_ev, sqp.ctol)
-    kkt_ev = with_knot_gaps(control, new_ev, new_a) if with_rows else new_ev
+    # the knot gaps are rows of the KKT test with or without inequality rows (a collapsed
+    # duration is held by its gap: a saturated spline's optimum, RESULTS.md)
+    kkt_ev = with_knot_gaps(control, new_ev, new_a)
     # the stationarity test only where it can decide (SUCCESS needs feasibility): with
     # inequalities it is rounds of least squares over every near-active or violated row
     pg = lax.cond(feasible, lambda: stationarity(kkt_ev, new_a, sqp.path_active), lambda: jnp.inf)

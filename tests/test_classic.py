@@ -247,6 +247,29 @@ def test_penalty_cap_waits_for_the_violation_to_halve_on_a_pendulum_min_time():
         assert jt.kkt_report(prob, ctrl, sol.params, simulator=SIM).satisfied(1e-9, 1e-6)
 
 
+def test_collapsed_durations_count_in_the_trust_regions_kkt_test():
+    """The moon lander's least fuel with a saturated spline (0 <= u <= 3, free durations;
+    benchmarks/unseen.py) from random start 1 of 32 (key 0, spread 0.5): the optimum (coast,
+    then full thrust: J* = sqrt(68), closed form) collapses durations to 0 (three of eight).
+    The trust region tested stationarity with the knot gaps only for problems with
+    inequality rows, and this one has none (the spline saturates within its limits): at the
+    optimum, held by the gaps of the collapsed durations, its residual stayed 4e-7..6e-3 and
+    10 of 32 random starts ended STALLED at J* (now 4). With the gaps in its test as in
+    every solver's final report: SUCCESS, from the start's round-off perturbations too."""
+    prob, ctrl, _ = _unseen_problem("lander-spline")
+    a0 = np.array([
+        0.22851977748357688, 0.5787906663103681, 1.1654510544812466, 0.8200034092064445, 0.7520190200396671,
+        0.3152440884697181, 0.42528950139820226, 0.722504451951532, 3.0, 1.748881928213346, 2.5353824201937227,
+        1.9077422605175336, 2.206936082001609, 1.3376433697433783, 1.1095061061072704, 0.31862202658245486,
+        1.9388898729151514,
+    ])  # fmt: skip
+    for start in perturbed_starts(a0):
+        sol = jt.solve(prob, ctrl, start, simulator=SIM, max_steps=1000)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.objective) - np.sqrt(68.0)) <= 1e-8
+        assert np.sum(np.asarray(sol.params)[:8] < 1e-12) >= 2  # two durations collapsed
+
+
 def test_control_values_put_back_on_their_bounds_end_a_round_off_tail():
     """A unicycle's least time to (1, 1, pi/2) with 0 <= v <= 1, |omega| <= 1
     (benchmarks/unseen.py): the quarter circle at full speed and turn rate, tf* = pi/2. Its
