@@ -91,7 +91,7 @@ import optax
 
 from ._checks import check_settings
 from ._driver import AbstractSolver
-from ._kkt import multipliers, parameter_scale
+from ._kkt import inequality_rows, multipliers, parameter_scale
 from ._sensitivity import Evaluation, evaluate_jitted
 from ._solution import History, Solution
 from ._status import Status, diverged, failed
@@ -215,24 +215,18 @@ class Multipliers(eqx.Module):
 
 def inequality_block(ev: Evaluation):
     """`(C, C_a, groups)`: the inequality rows of the augmented Lagrangian, C (R,) and C_a
-    (R, np), the path constraints on the grid (point after point, as `_kkt.inequality_rows`)
-    then the terminal inequalities D, and `groups` (R,), a static array naming each row's
-    penalty group: path component j is group j (one penalty over the grid: the contact point
-    of a touching constraint moves between grid points), terminal inequality i is group q + i.
-    Control bounds are not rows here: the projection keeps them."""
-    p = ev.G_a.shape[0]
-    C, C_a, groups = [jnp.zeros(0, ev.G_a.dtype)], [jnp.zeros((0, p), ev.G_a.dtype)], [np.zeros(0, int)]
-    q = 0
-    if ev.C is not None:
-        n, q = ev.C.shape
-        C.append(ev.C.reshape(-1))
-        C_a.append(ev.C_a.reshape(n * q, p))
-        groups.append(np.tile(np.arange(q), n))
-    if ev.D is not None:
-        C.append(ev.D)
-        C_a.append(ev.D_a)
-        groups.append(q + np.arange(ev.D.shape[0]))
-    return jnp.concatenate(C), jnp.concatenate(C_a), np.concatenate(groups)
+    (R, np), `_kkt.inequality_rows` without the control-bound rows (the projection keeps the
+    bounds): the path constraints on the grid (point after point), then the terminal
+    inequalities D; and `groups` (R,), a static array naming each row's penalty group: path
+    component j is group j (one penalty over the grid: the contact point of a touching
+    constraint moves between grid points), terminal inequality i is group q + i."""
+    no_bounds = eqx.tree_at(lambda e: (e.V, e.V_a), ev, (None, None), is_leaf=lambda x: x is None)
+    rows = inequality_rows(no_bounds)
+    if rows is None:
+        rows = jnp.zeros(0, ev.G_a.dtype), jnp.zeros((0, ev.G_a.shape[0]), ev.G_a.dtype)
+    n, q = (0, 0) if ev.C is None else ev.C.shape
+    r = 0 if ev.D is None else ev.D.shape[0]
+    return (*rows, np.concatenate([np.tile(np.arange(q), n), q + np.arange(r)]).astype(int))
 
 
 def _num_groups(ev: Evaluation):

@@ -128,7 +128,7 @@ def segment_hessian(problem, control, a, simulator, terminal, basis):
     parameters, 40 segments) 4.6x faster, on Earth-Mars case 4 (7 parameters) 0.85x
     (benchmarks/RESULTS.md; `lagrangian_hessian` chooses)."""
     data = segment_data(control, a)
-    coords = jnp.einsum("kir,kip->krp", basis, jax.jacfwd(segment_data, argnums=1)(control, a))  # dw_k/da
+    coords = jnp.einsum("kir,kip->krp", basis, _segment_jacobian(control, a))  # dw_k/da
     field = rescaled_field(problem, control)
     x0, x0_a = _initial(problem, control, a)
     n, r = x0.shape[0], basis.shape[-1]

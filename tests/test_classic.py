@@ -2,6 +2,7 @@
 computations, the restricted optimum by SciPy SLSQP (a second solver on the same
 evaluation) within each problem's gap, and the default solver from the naive start."""
 
+import functools
 import importlib.util
 import pathlib
 
@@ -38,6 +39,7 @@ def test_hypersensitive_reference_matches_the_indirect_solution():
     assert abs(CLASSIC.hypersensitive_reference() - CLASSIC.HYPERSENSITIVE_REFERENCE) < 1e-7
 
 
+@functools.cache
 def _benchmark(name):
     """The script benchmarks/<name>.py as a module."""
     path = pathlib.Path(__file__).parents[1] / "benchmarks" / f"{name}.py"
