@@ -283,7 +283,7 @@ class KalmanSQP(AbstractSolver):
             C, C_a = rows
             n_rows = C.shape[0]
             n_checked = n_rows + (2 * d.shape[0] if radius is not None else 0)
-            box_slack = 0.0 if radius is None else 1e-6 * radius  # (the rows are d_i - radius)
+            box_slack = 0.0 if radius is None else 1e-3 * radius  # (the rows are d_i - radius)
             if radius is not None:
                 eye = jnp.eye(d.shape[0], dtype=d.dtype)
                 C = jnp.concatenate([C, jnp.full(2 * d.shape[0], -radius, d.dtype)])
@@ -313,12 +313,15 @@ class KalmanSQP(AbstractSolver):
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`,
             # or the final step (its working rows refiltered) leaves a problem's row past 100
-            # `ctol` or a step bound past 1e-6 of the radius. Refiltered through a nearly
+            # `ctol` or a step bound past 1e-3 of the radius. Refiltered through a nearly
             # singular covariance the working rows can leave the step past a bound the active
             # set met (the moon lander's start: a flat switch time of variance 1e8 took E's
             # step of 2 in tf past a radius of 1 and moved by -1, by -0.2 after a 1e-13
-            # perturbation; the scaled step followed round-off; RESULTS.md). The margin of 100
-            # `ctol` leaves the refiltering's round-off at a degenerate vertex alone (a unicycle
+            # perturbation; the scaled step followed round-off; RESULTS.md). That excess is of
+            # the order of the radius; the margin of 1e-3 of it is far above the round-off of a
+            # consistent step (1.5e-6 of the radius on a QP with two directions of curvature
+            # 1e-8: a margin of 1e-6 sent it to the elastic step, which left E as large as it
+            # was; `test_qp_step.py`). The margin of 100 `ctol` leaves the refiltering's round-off at a degenerate vertex alone (a unicycle
             # with every control on its bound: past `ctol` by round-off, and an elastic step
             # there stalled; a pendulum's minimum time needs the rows' final excess counted).
             # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
@@ -341,6 +344,7 @@ class KalmanSQP(AbstractSolver):
                     threshold,
                     max_rounds,
                     num_equalities=jnp.where(elastic, 0, m),
+                    equalities=(jnp.where(elastic, P_eq, P), ev.E, r),
                 )
                 final = C + C_a @ d
                 inconsistent = (

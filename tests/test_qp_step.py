@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import assume, given, settings, strategies as st
 
 from jaxtraj import Evaluation, KalmanSQP
@@ -166,3 +167,28 @@ def test_elastic_step_is_the_penalty_qp_solution(seed, n, mi):
     x = xs[:n]
     assert np.max(C + C_a @ x) <= 1e-9 and np.max(np.abs(E + H @ x)) > 0.1  # inconsistent rows
     np.testing.assert_allclose(np.asarray(d), x, rtol=0, atol=1e-6 * (1.0 + np.max(np.abs(x))))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_step_meets_the_equalities_through_nearly_flat_directions(seed):
+    """B with two directions of curvature 1e-8 (its floor: a collapsed segment's level, a
+    switch time between equal levels) and a gradient of 1e-6: the unconstrained step is ~100,
+    the box |d_i| <= 1e-7 takes it back, and E ~ 1e-10 (the endgame of a minimum-time
+    problem). Filtered through the covariance after E's rows only, the working rows left
+    H d + E at up to 5 |E| (a pendulum's minimum time stalled at |E| = 1.9e-10 > ctol); E's
+    rows and the working rows refined together from B^-1 meet both: H d = -E to 1e-2 |E|
+    (measured <= 2e-3), the box to 1e-3 of its radius (`KalmanSQP.direction`'s test of a
+    consistent step; the trust region scales the step to its radius)."""
+    rng = np.random.default_rng(seed)
+    n, radius = 8, 1e-7
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    B = Q @ np.diag([1.0, 2.0, 0.5, 3.0, 1e-8, 1e-8, 1.5, 1.0]) @ Q.T
+    g, H, E = 1e-6 * rng.normal(size=n), rng.normal(size=(2, n)), 1e-10 * rng.normal(size=2)
+    ev = Evaluation(
+        xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(g), E=jnp.asarray(E), H=jnp.asarray(H), status=None,
+        D=jnp.array([-1.0]), D_a=jnp.asarray(rng.normal(size=(1, n))),
+    )  # fmt: skip
+    d, _ = _direction(ev, jnp.asarray(B), jnp.zeros(3), jnp.array([0.0, 1.0]), jnp.zeros((2, n)), radius)
+    d = np.asarray(d)
+    assert np.max(np.abs(H @ d + E)) <= 1e-2 * np.max(np.abs(E))
+    assert np.max(np.abs(d)) <= radius * (1 + 1e-3)
