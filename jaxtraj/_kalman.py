@@ -65,7 +65,10 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     [0, 1] keeps the order too. A gap of at most `collapse` that `da` would close is instead
     closed (observed without noise at its whole length): a segment on its way to length 0
     gets there in one step instead of shrinking by 1/a_t per step (a linear crawl that
-    slowed every other parameter with it).
+    slowed every other parameter with it). A gap of at most `collapse` that `da` opens but
+    the observations of the others turn to closing (a covariance coupling its knots with
+    theirs) is then held at its length the same way; the final scaling skips gaps already at
+    or below their floor (a collapsed gap a hair below 0 gave a factor of -3e-28: a zero step).
 
     `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
     `(da, P)`.
@@ -77,6 +80,10 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     z_star = jnp.where(close, gaps, gaps / a_t)
     r_star = jnp.where(close, 0.0, (z_star**2) / 12.0) + 1e-300  # closed: noise-free
     da, P, _ = sequential_update(da, P, -D, z_star, r_star, active=violated)
+    # a collapsed gap that the observations above turned to closing is held at its length too
+    held = ~violated & (gaps <= collapse) & (gaps + D @ da <= 0.0)
+    da, P, _ = sequential_update(da, P, -D, gaps, jnp.full_like(gaps, 1e-300), active=held)
+    close = close | held
     if keep is not None:
         short = (gaps > 0.0) & (gaps + D @ da < keep * gaps)
         r = 1e-12 * jnp.einsum("ip,pq,iq->i", D, P, D) + 1e-300
@@ -87,7 +94,9 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     # step (else one collapsed segment would freeze every other parameter).
     real = closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da)
     floor = jnp.where(close, 0.0, gaps / (2.0 * a_t))
-    limit = jnp.where(real & (gaps + closing < floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0)
+    limit = jnp.where(
+        real & (gaps + closing < floor) & (gaps > floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0
+    )
     return da * jnp.min(limit, initial=1.0), P
 
 

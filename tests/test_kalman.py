@@ -128,6 +128,29 @@ def test_keep_knots_ordered_closes_a_gap_within_collapse():
         assert float(np.diff(np.asarray(knots + dknots @ d0))[1]) >= 1e-8 / 20 * (1 - 1e-9)
 
 
+def test_keep_knots_ordered_holds_a_collapsed_gap_that_another_gap_turns_to_closing():
+    """A collapsed gap (t2 - t1 = -1e-17, round-off below 0) that the step opens, and a gap
+    the step closes whose observation, through a covariance coupling t2 with t3, turns the
+    collapsed one to closing: it is held at its length (a second, noise-free observation), so
+    the step is the batch update on both rows. It used to scale the step by (g - floor) /
+    -closing with g below its floor: by -3e-28, a zero step that the trust region accepted
+    and then called no progress (a pendulum's minimum time: 3 of 32 random starts STALLED)."""
+    from jaxtraj._kalman import batch_update, keep_knots_ordered
+
+    knots = jnp.array([0.0, 1.0, 1.0 - 1e-17, 2.0])
+    D = np.diff(np.asarray(_DKNOTS), axis=0)
+    P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.9], [0.0, 0.9, 1.0]])
+    gaps = np.diff(np.asarray(knots))
+    for da in ([0.0, 0.05, -1.5], [0.0, 0.02, -1.2], [0.0, 0.1, -2.0]):  # t2 up, t3 down past t2
+        d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, _DKNOTS, 10.0, collapse=1e-6)
+        # the last gap observed at 1/a_t of its length (variance z*^2 / 12), the middle one at its own
+        z = np.array([gaps[2] / 10.0, gaps[1]])
+        reference, _ = batch_update(np.asarray(da), P, -D[[2, 1]], z, np.array([z[0] ** 2 / 12.0, 1e-300]))
+        np.testing.assert_allclose(d, reference, atol=1e-12)
+        new_gaps = np.diff(np.asarray(knots + _DKNOTS @ d))
+        assert abs(new_gaps[1]) < 1e-15 and new_gaps[2] > gaps[2] / 20.0
+
+
 def test_keep_knots_ordered_holds_half_a_closing_gap():
     """With `keep`, a gap the step would shrink below that fraction is held at exactly the
     fraction by a noise-free observation (the minimum-P^-1-norm change of the step, as the
