@@ -69,19 +69,26 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     the observations of the others turn to closing (a covariance coupling its knots with
     theirs) is then held at its length the same way; the final scaling skips gaps already at
     or below their floor (a collapsed gap a hair below 0 gave a factor of -3e-28: a zero step).
+    A gap at 0 that `da` leaves at 0 (within 1e-14 of the knots' scale) is settled and not
+    observed (the QP's gap rows already hold it).
 
     `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
     `(da, P)`.
     """
     gaps = knots[1:] - knots[:-1]
     D = dknots[1:] - dknots[:-1]  # d(gap)/da, (K, p)
-    violated = gaps + D @ da <= 0.0
+    # a gap at 0 that the step leaves at 0, both up to the knots' round-off (`tiny`), is
+    # settled: observed again through a covariance that already pins it (the QP's gap rows),
+    # its gain is round-off over round-off (it moved a pendulum's bounded levels by 1e-5)
+    tiny = 1e-14 * jnp.max(jnp.abs(knots))
+    settled = (jnp.abs(gaps) <= tiny) & (jnp.abs(gaps + D @ da) <= tiny)
+    violated = (gaps + D @ da <= 0.0) & ~settled
     close = violated & (gaps <= collapse)
     z_star = jnp.where(close, gaps, gaps / a_t)
     r_star = jnp.where(close, 0.0, (z_star**2) / 12.0) + 1e-300  # closed: noise-free
     da, P, _ = sequential_update(da, P, -D, z_star, r_star, active=violated)
     # a collapsed gap that the observations above turned to closing is held at its length too
-    held = ~violated & (gaps <= collapse) & (gaps + D @ da <= 0.0)
+    held = ~violated & (gaps <= collapse) & (gaps + D @ da < -tiny)
     da, P, _ = sequential_update(da, P, -D, gaps, jnp.full_like(gaps, 1e-300), active=held)
     close = close | held
     if keep is not None:

@@ -151,6 +151,22 @@ def test_keep_knots_ordered_holds_a_collapsed_gap_that_another_gap_turns_to_clos
         assert abs(new_gaps[1]) < 1e-15 and new_gaps[2] > gaps[2] / 20.0
 
 
+def test_keep_knots_ordered_leaves_a_settled_collapsed_gap_alone():
+    """A collapsed gap (3e-26) that the step leaves at its length up to the knots' round-off
+    (here -1e-20 after the step: the QP's gap row holds it) is not observed again: the step
+    comes back unchanged, bit for bit. Observed again through the QP's covariance, which
+    already pins that direction, the gain was round-off over round-off: it moved a
+    pendulum's bounded levels by 1e-5 and the step lost its E rows (4 of 32 random starts)."""
+    from jaxtraj._kalman import keep_knots_ordered
+
+    knots = jnp.array([0.0, 1.0, 1.0 + 3e-26, 2.0])
+    for P, da in _knot_steps([0.05, 0.05, -0.02]):
+        da = np.asarray(da)
+        da[0], da[1] = 0.0, -3e-26 - 1e-20  # t1 stays, t2 closes the middle gap to -1e-20
+        d, _ = keep_knots_ordered(jnp.asarray(da), jnp.asarray(P), knots, _DKNOTS, 10.0, collapse=1e-6)
+        np.testing.assert_array_equal(np.asarray(d), da)
+
+
 def test_keep_knots_ordered_holds_half_a_closing_gap():
     """With `keep`, a gap the step would shrink below that fraction is held at exactly the
     fraction by a noise-free observation (the minimum-P^-1-norm change of the step, as the
