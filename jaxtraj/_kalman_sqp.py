@@ -321,9 +321,10 @@ class KalmanSQP(AbstractSolver):
             # the order of the radius; the margin of 1e-3 of it is far above the round-off of a
             # consistent step (1.5e-6 of the radius on a QP with two directions of curvature
             # 1e-8: a margin of 1e-6 sent it to the elastic step, which left E as large as it
-            # was; `test_qp_step.py`). The margin of 100 `ctol` leaves the refiltering's round-off at a degenerate vertex alone (a unicycle
-            # with every control on its bound: past `ctol` by round-off, and an elastic step
-            # there stalled; a pendulum's minimum time needs the rows' final excess counted).
+            # was; `test_qp_step.py`). The margin of 100 `ctol` leaves the refiltering's
+            # round-off at a degenerate vertex alone (a unicycle with every control on its
+            # bound: past `ctol` by round-off, and an elastic step there stalled; a pendulum's
+            # minimum time needs the rows' final excess counted).
             # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
