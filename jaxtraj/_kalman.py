@@ -217,37 +217,25 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
 
-def inequality_step(
-    d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None, equalities=None
-):
+def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
     filtered as observations C_a d = -C (noise `r`), with one refinement pass (the same
-    update with the first estimate as prior mean). With `equalities = (P0, E, r_E)` (P0 the
-    covariance before E's rows, r_E their noise) the refinement pass filters E's first
-    `num_equalities` rows and the working rows together from P0: the step then meets both to
-    round-off of its own size. Through P alone E's rows are met only to round-off of the
-    intermediate estimates: where B has directions of nearly zero curvature (variance 1e8)
-    the unconstrained step is huge before the working rows take it back, and E kept a
-    residual as large as itself (a pendulum's minimum time with a collapsed segment: |E|
-    stayed at 1.9e-10 for 30 steps, STALLED; RESULTS.md). Returns `(d, P, W, u, excess)`:
-    the step, its covariance, and `dual_active_set`'s working set, multipliers and excess."""
+    update with the first estimate as prior mean) over E's first `num_equalities` rows and the
+    working rows together, from `equalities = (P0, E, r_E)`: P0 the covariance before E's
+    rows, r_E their noise. The step then meets both to round-off of its own size; refined
+    through P alone, E's rows kept the round-off of the intermediate estimates, which are huge
+    where B has directions of nearly zero curvature (variance 1e8) before the working rows
+    take the step back (|H d + E| as large as |E|: a pendulum's minimum time STALLED above
+    `ctol`; RESULTS.md). Returns `(d, P, W, u, excess)`: the step, its covariance, and
+    `dual_active_set`'s working set, multipliers and excess."""
     W, u, excess = dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities)
     d1, _, _ = sequential_update(d, P, C_a, -C, r, active=W)
-    if equalities is None:
-        d1, P1, _ = sequential_update(d1, P, C_a, -C, r, active=W)
-    else:
-        P0, E, r_E = equalities
-        m = E.shape[0]
-        on = jnp.arange(m) < (m if num_equalities is None else num_equalities)
-        d1, P1, _ = sequential_update(
-            d1,
-            P0,
-            jnp.concatenate([H, C_a]),
-            jnp.concatenate([-E, -C]),
-            jnp.concatenate([r_E, r]),
-            active=jnp.concatenate([on, W]),
-        )
+    P0, E, r_E = equalities
+    m = E.shape[0]
+    on = jnp.arange(m) < (m if num_equalities is None else num_equalities)
+    rows, z, noise = jnp.concatenate([H, C_a]), jnp.concatenate([-E, -C]), jnp.concatenate([r_E, r])
+    d1, P1, _ = sequential_update(d1, P0, rows, z, noise, active=jnp.concatenate([on, W]))
     return d1, P1, W, u, excess
 
 

@@ -344,8 +344,8 @@ class KalmanSQP(AbstractSolver):
                     self.path_dependence,
                     threshold,
                     max_rounds,
+                    (jnp.where(elastic, P_eq, P), ev.E, r),
                     num_equalities=jnp.where(elastic, 0, m),
-                    equalities=(jnp.where(elastic, P_eq, P), ev.E, r),
                 )
                 final = C + C_a @ d
                 inconsistent = (

@@ -644,9 +644,7 @@ class TrustRegion(eqx.Module):
       once the violation |E|^2/2 + |max(C, 0)|^2/2 has halved since the last cap, so that it
       happens finitely often on the way to feasibility. Capping at every step let a
       pendulum's minimum time (benchmarks/unseen.py) cycle through 8 accepted points
-      (MAX_ITERATIONS after 1849 iterations; now SUCCESS in 122, IPOPT 419; cart-pole
-      268 -> 271).
-      benchmarks/RESULTS.md.
+      (MAX_ITERATIONS). benchmarks/RESULTS.md.
     - `feasibility_first`: far from feasible, |E| > feasibility_first x |H|_F |a|, the normal
       step is taken alone while it is cut (the linearized constraints out of the radius's
       reach), without the tangential step (0.1; 0: wherever the normal step is cut; inf:
