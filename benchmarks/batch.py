@@ -10,9 +10,10 @@ Compilation is excluded from both (warm-up calls: for solve_batch on N NaN start
 the same shapes and end at once).
 
 Run: `python benchmarks/batch.py [memory] [throughput] [where] [scaling] [solvers] [default]
-[accelerator]` (the first four by default, about 10 minutes on the 2-core sandbox);
-`--skip-memory` leaves out the N = 10,000 runs; `solvers` compares KalmanSearch, the default
-KalmanSQP and its line search under solve_batch (N = 256); `default` runs solve_batch as a
+[accelerator] [vmapped]` (the first four by default, about 10 minutes on the 2-core sandbox);
+`--skip-memory` leaves out the N = 10,000 runs; `solvers` compares every solver under solve_batch
+(N = 256); `vmapped` runs every solver vmapped against a loop of single solves on problems with
+and without path constraints (N = 8); `default` runs solve_batch as a
 user calls it (no device setup, default solver) against loops of single solves and of CasADi
 + IPOPT solves; `accelerator` runs solve_batch with its default lanes on the default device (a
 GPU where there is one) for N = 256, 1024, 4096 against a loop of single solves there.
@@ -38,6 +39,12 @@ PROB, CTRL, A0 = jt.problems.earth_mars.thesis_case(4)
 SOLVER = jt.KalmanSearch()
 SPREAD = 0.1
 LOOP_SUBSET = 64
+SOLVERS = {
+    "KalmanSearch (published tuning)": SOLVER,
+    "KalmanSQP (default: trust region)": jt.KalmanSQP(),
+    "KalmanSQP line search (BFGS)": jt.KalmanSQP(hessian="bfgs", globalization="line-search"),
+    "AugmentedLagrangian": jt.AugmentedLagrangian(),
+}
 
 
 def starts(n, seed=0):
@@ -137,11 +144,7 @@ def solvers(n=256, subset=32):
     print("| solver | loop [solves/s] | lanes=1 | ratio | lanes=32 | ratio | success |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     a0s = starts(n)
-    for name, solver in [
-        ("KalmanSearch (published tuning)", SOLVER),
-        ("KalmanSQP (default: trust region)", jt.KalmanSQP()),
-        ("KalmanSQP line search (BFGS)", jt.KalmanSQP(hessian="bfgs", globalization="line-search")),
-    ]:
+    for name, solver in SOLVERS.items():
         loop = loop_rate(a0s[:subset], solver)
         cells, ok = [], []
         for lanes in (1, 32):
@@ -149,6 +152,53 @@ def solvers(n=256, subset=32):
             cells += [f"{rate:.1f}", f"{rate / loop:.2f}x"]
             ok.append(np.mean(np.asarray(sols.status == jt.Status.SUCCESS)))
         print(f"| {name} | {loop:.1f} | " + " | ".join(cells) + f" | {min(ok):.0%} |", flush=True)
+    print()
+
+
+def vmapped(n=8):
+    """Every solver vmapped (`solve_batch(lanes=n)` on one device) against a loop of single
+    solves on the same n starts, on a problem without path constraints (Earth-Mars case 4) and
+    two with them (the attitude slew's keep-out cone, Bryson-Denham's state bound): a lane's
+    data-dependent work (a Hessian, a fallback test) must not cost every lane every step
+    (issue 21)."""
+    from jaxtraj.problems import attitude
+
+    entry = jt.problems.classic.get("bryson-denham")
+    problems = [
+        ("Earth-Mars case 4, RK4(100)", PROB, CTRL, A0, jt.RK4(100)),
+        ("attitude slew, 50 deg cone, RK4(20)", *attitude.case("quaternion", 8), jt.RK4(20)),
+        ("Bryson-Denham, x <= 1/9, RK4(40)", entry.problem, entry.control, entry.start, jt.RK4(40)),
+    ]
+    one = [jax.devices()[0]]
+    print(f"## Every solver vmapped: solve_batch(lanes={n}) on one device against a loop of single solves")
+    print()
+    print(
+        "| problem | solver | loop (s) | vmapped (s) | vmapped / loop | iterations loop / vmapped | SUCCESS loop / vmapped |"
+    )
+    print("|---|---|---:|---:|---:|---|---|")
+    for title, prob, ctrl, a0, sim in problems:
+        a0s = np.asarray(random_starts(prob, ctrl, jax.random.key(0), n, a0, SPREAD, simulator=sim))
+        for name, solver in SOLVERS.items():
+            jax.block_until_ready(jt.solve(prob, ctrl, a0s[0], solver, simulator=sim).params)
+            t0 = time.perf_counter()
+            singles = [jt.solve(prob, ctrl, a, solver, simulator=sim) for a in a0s]
+            jax.block_until_ready(singles[-1].params)
+            loop = time.perf_counter() - t0
+            kw = dict(simulator=sim, devices=one, progress=False, history=False, lanes=n)
+            solve_batch(prob, ctrl, np.full_like(a0s, np.nan), solver, **kw)
+            t0 = time.perf_counter()
+            sols = solve_batch(prob, ctrl, a0s, solver, **kw)
+            batch = time.perf_counter() - t0
+            its = (np.mean([int(s.iterations) for s in singles]), np.mean(np.asarray(sols.iterations)))
+            ok = (
+                sum(int(s.status == jt.Status.SUCCESS) for s in singles),
+                int(np.sum(sols.status == jt.Status.SUCCESS)),
+            )
+            print(
+                f"| {title} | {name} | {loop:.2f} | {batch:.2f} | {batch / loop:.2f} | {its[0]:.0f} / {its[1]:.0f} "
+                f"| {ok[0]} / {ok[1]} of {n} |",
+                flush=True,
+            )
     print()
 
 
@@ -329,6 +379,7 @@ SECTIONS = {
     "solvers": solvers,
     "default": default,
     "accelerator": accelerator,
+    "vmapped": vmapped,
 }
 
 

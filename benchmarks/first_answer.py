@@ -80,7 +80,7 @@ def pieces(problem, control, a0, simulator):
     lam = least_squares_multipliers(ev, sqp.path_active)
     kernels = {
         "evaluation (forward)": (lambda a: evaluate_restricted(problem, control, a, simulator, "forward"), (a0,)),
-        "exact Hessian": (lambda a, lam: sqp.exact_hessian(problem, control, a, simulator, lam)[1], (a0, lam)),
+        "exact Hessian": (lambda a, ev, lam: sqp.exact_hessian(problem, control, a, simulator, ev, lam), (a0, ev, lam)),
         "QP step": (
             lambda ev, B, lam, a: sqp.direction(ev, B, lam, control.knots(a), jax.jacfwd(control.knots)(a), 0.5),
             (ev, np.eye(a0.shape[0]), lam, a0),

@@ -18,8 +18,7 @@ import jax.numpy as jnp
 
 import jaxtraj as jt
 from jaxtraj._kkt import lagrangian_gradient
-from jaxtraj._sensitivity import evaluate_restricted
-from jaxtraj._trust_region import lagrangian_hessian
+from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
 
 jax.config.update("jax_enable_compilation_cache", False)
 

@@ -12,6 +12,7 @@ import abc
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
@@ -23,9 +24,10 @@ class AbstractSolver(eqx.Module):
 
     `state` must carry `done` (bool scalar), `num_steps` and `history` (a `History`, written
     only by `History.record`: drivers may give it length 0). Each `step` integrates one
-    candidate point with sensitivities (the trust region adds one second-order integration
-    at an accepted point; `Solution.integrations` counts them all) and records one History
-    entry. Everything static (configuration, shapes) stays the same from step to step: the
+    candidate point with sensitivities (KalmanSQP adds one second-order integration, the
+    exact Hessian, at an accepted point; `Solution.integrations` counts them all) and
+    records one History entry. A batch runs `step` vmapped, finished lanes included (their
+    results are dropped): work only some steps need belongs under `only_where`. Everything static (configuration, shapes) stays the same from step to step: the
     driver checks it at trace time.
     """
 
@@ -44,6 +46,26 @@ class AbstractSolver(eqx.Module):
     @abc.abstractmethod
     def progress(self, state) -> dict:
         """Scalars worth printing during a long solve (name -> array)."""
+
+
+def only_where(pred, fn, otherwise, *operands):
+    """`fn(*operands)` where `pred`, else `otherwise` (a tree of `fn`'s output structure and
+    dtypes): the data-dependent work of a step (a Hessian, a fallback test) that most steps
+    skip.
+
+    In one solve this is `lax.cond`. Under `vmap` (the batch lanes, a user's `jax.vmap` of
+    `jt.solve`) a `lax.cond` on a per-lane predicate runs both branches on every lane, so a
+    batch would pay the expensive branch every step; this is a loop of at most one round
+    instead, which runs `fn` (on every lane, kept where `pred`) only in a step where some
+    lane needs it (issue 21). The operands pass through an optimization barrier with the
+    loop's predicate: else XLA hoists `fn`'s work, invariant in the loop, out of it, and runs
+    it in every step."""
+
+    def body(carry):
+        pred, args = lax.optimization_barrier((carry[0], operands))
+        return jnp.zeros_like(pred), fn(*args)
+
+    return lax.while_loop(lambda carry: carry[0], body, (jnp.asarray(pred), otherwise))[1]
 
 
 def _print_progress(step, values):

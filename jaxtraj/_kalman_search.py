@@ -69,7 +69,7 @@ from jax import lax
 
 from ._bounds import require_rows
 from ._checks import check_settings
-from ._driver import AbstractSolver
+from ._driver import AbstractSolver, only_where
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import constraint_rows, inequality_rows, stationarity
 from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
@@ -332,10 +332,15 @@ class KalmanSearch(AbstractSolver):
         dknots = jax.jacfwd(control.knots)(a)
         # A shrunk candidate from a rejected step is retried as it is; only a fresh step
         # runs the filter and the preliminary re-tuning loop.
-        da, rho, beta, beta_p, stationary = lax.cond(
-            state.has_pending,
-            lambda: (state.da_pending, state.rho, state.beta, state.beta_p, jnp.array(False)),
-            lambda: self._preliminary(ev, state.rho, state.beta, state.beta_p, phase, e_a, knots, dknots),
+        da, rho, beta, beta_p, stationary = only_where(
+            ~state.has_pending,
+            lambda ev, rho, beta, beta_p, e_a: self._preliminary(ev, rho, beta, beta_p, phase, e_a, knots, dknots),
+            (state.da_pending, state.rho, state.beta, state.beta_p, jnp.array(False)),
+            ev,
+            state.rho,
+            state.beta,
+            state.beta_p,
+            e_a,
         )
 
         # integrate the candidate (one integration with sensitivities; the first step's is

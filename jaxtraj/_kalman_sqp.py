@@ -17,14 +17,15 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   problem from its naive start with fewer iterations than the line search on 11 of 15, and
   more of Zermelo's random starts at the reference (26 against 22 of 32; singular arc 30
   against 31) (benchmarks/RESULTS.md, "The trust region as the one default").
-* Hessian. `hessian="exact"` (default): the exact Hessian of the Lagrangian
-  (forward-over-forward autodiff through the simulation) at every accepted point.
-  `hessian="bfgs"` (line search only): exact at a0 and at the candidates of the first
-  `exact_iterations` iterations, then Powell-damped BFGS updates on the Lagrangian
-  gradient, which keep it positive definite (the early exact Hessians steer the first steps
-  into the right basin; pure BFGS ends case 3 in a worse local minimum). A candidate of a
-  search that backtracks (its BFGS step was rejected) is evaluated with the exact Hessian
-  too, which replaces the model if it is accepted (unless `exact_iterations=0`, pure BFGS):
+* Hessian. `hessian="exact"` (default): the exact Hessian of the Lagrangian at every
+  accepted point but the last (`_sensitivity.lagrangian_hessian`, one kernel for both
+  globalizations: forward over reverse autodiff of the simulation, or by segments; one more
+  integration). `hessian="bfgs"` (line search only): exact at a0 and at the accepted
+  candidates of the first `exact_iterations` iterations, then Powell-damped BFGS updates on
+  the Lagrangian gradient, which keep it positive definite (the early exact Hessians steer
+  the first steps into the right basin; pure BFGS ends case 3 in a worse local minimum). An
+  accepted candidate of a search that backtracked (its BFGS step was rejected) gets the exact
+  Hessian too (unless `exact_iterations=0`, pure BFGS):
   BFGS cannot learn a free scale of the parameters (orbit raising's thrust vector, normalized
   in the dynamics). The line search makes either exact Hessian positive definite by
   `convexify`, the trust region its own way.
@@ -54,9 +55,10 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   all rows enter the Lagrangian and the merit. A fresh direction first releases the
   multipliers of points that are strictly inactive and outside the QP's active set
   (`release_inactive`): a leftover nu there makes the merit's slope positive near the optimum.
-* One `step` = one candidate integration (with first-, or with `hessian="exact"`
-  second-order sensitivities), branch-free, so a batch under `vmap` runs the same work for
-  every start.
+* One `step` = one candidate integration with first-order sensitivities (and the exact
+  Hessian at an accepted point). Work that only some steps need (the Hessian, the start's
+  least-squares multipliers, the infeasibility test) runs under `_driver.only_where`: a
+  branch in one solve, and under `vmap` only in a step where some lane needs it.
 * Termination. What SUCCESS guarantees: max |E_i| <= `ctol`, max C <= `ctol` on the grid,
   and the projected gradient |V G_a| (V: projection on the tangent space of E and of the
   path points with C >= -`path_active`; right-signed multipliers; in the scaled parameters
@@ -73,7 +75,6 @@ Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -83,14 +84,13 @@ from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
     inequality_rows,
-    lagrangian_gradient,
     least_squares_multipliers,
     multipliers,
     stationarity,
     with_knot_gaps,
 )
 from ._line_search import LineSearch
-from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
+from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian, unevaluated
 from ._solution import Solution
 from ._trust_region import TrustRegion
 
@@ -227,21 +227,12 @@ class KalmanSQP(AbstractSolver):
         """The QP's positive definite B from an exact Hessian of the Lagrangian W (`convexify`)."""
         return convexify(W, H, self.min_curvature)
 
-    def exact_hessian(self, problem, control, a, simulator, lam):
-        """`(ev, B, weights)`: the evaluation at `a`, the convexified Hessian of the
-        Lagrangian with multipliers `lam`, and those multipliers. `lam` is an array or a
-        function of the evaluation (multipliers that need the point they weigh, as the
-        start's least-squares ones: held fixed in the derivative, so that one integration
-        gives both)."""
-
-        def grad_lagrangian(a):
-            ev = self.restricted(problem, control, a, simulator)
-            weights = lax.stop_gradient(lam(ev)) if callable(lam) else lam
-            return lagrangian_gradient(ev, weights), (ev, weights)
-
-        hess, (ev, weights) = jax.jacfwd(grad_lagrangian, has_aux=True)(a)
-        B = self.qp_hessian(0.5 * (hess + hess.T), ev.H)
-        return ev, jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0])), weights
+    def exact_hessian(self, problem, control, a, simulator, ev, lam):
+        """The QP's B at `a` (evaluated as `ev`): the convexified Hessian of the Lagrangian
+        with multipliers `lam` (`lagrangian_hessian`, the trust region's kernel); the
+        identity where it is not finite."""
+        B = self.qp_hessian(lagrangian_hessian(problem, control, a, simulator, lam), ev.H)
+        return jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0]))
 
     def unevaluated(self, problem, control, a0, simulator):
         """Zeros shaped as the evaluation at `a0` and its least-squares multipliers, for an

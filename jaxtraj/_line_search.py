@@ -27,11 +27,12 @@ near the solution, so the superlinear rate is not lost to the Maratos effect).
   projected gradient. The solver's termination rule (`jaxtraj._kkt.kkt_outcome`) then decides
   between SUCCESS and STALLED.
 
-One `step` = one candidate integration; the first step's candidate is the start itself
-(evaluated with the exact Hessian and its least-squares multipliers; `init` integrates
-nothing, so the evaluation kernels are compiled once, in the step). The direction is a loop
-of at most two rounds (B, then the scaled identity), so that its QP is compiled once; every
-other choice is a select, so a batch under `vmap` runs the same work for every start.
+One `step` = one candidate integration (and the exact Hessian where an accepted point needs
+it); the first step's candidate is the start itself (weighed with its least-squares
+multipliers; `init` integrates nothing, so the evaluation kernels are compiled once, in the
+step). The direction is a loop of at most two rounds (B, then the scaled identity), so that
+its QP is compiled once; the Hessian, the start's multipliers and the infeasibility test run
+under `_driver.only_where` (under `vmap`, only in a step where some lane needs them).
 """
 
 import equinox as eqx
@@ -40,6 +41,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._checks import check_settings
+from ._driver import only_where
 from ._kkt import (
     inequality_rows,
     is_feasible,
@@ -184,7 +186,7 @@ class LineSearch(eqx.Module):
 
     def init(self, sqp, problem, control, a0, simulator, max_steps):
         # Nothing is integrated here: the first `step` evaluates the start as its candidate
-        # (with the exact Hessian and least-squares multipliers), so the compiled program
+        # (its least-squares multipliers, the exact Hessian), so the compiled program
         # holds the evaluation kernels once, in the step (issue 21).
         ev, lam = sqp.unevaluated(problem, control, a0, simulator)
         f = jnp.float64
@@ -262,28 +264,11 @@ class LineSearch(eqx.Module):
         step_taken = alpha * d + jnp.where(soc, state.d_soc, 0.0)
         lam_c = lam + alpha * dlam
 
-        def weights(cand):
-            least_squares = lambda: jnp.nan_to_num(
-                least_squares_multipliers(cand, sqp.path_active), nan=0.0, posinf=0.0, neginf=0.0
-            )
-            return lax.cond(first, least_squares, lambda: lam_c)
-
-        if sqp.hessian == "bfgs":
-            # exact Hessians at the start, for the first `exact_iterations` iterations and
-            # (unless pure BFGS, `exact_iterations=0`) at every candidate of a line search that
-            # backtracks: a BFGS model whose full step was rejected is replaced by the exact
-            # one (BFGS cannot learn a free scale of the parameters, e.g. a control vector
-            # normalized in the dynamics; measurements in benchmarks/RESULTS.md)
-            early = first | (state.num_iterations < sqp.exact_iterations)
-            if sqp.exact_iterations > 0:
-                early = early | ~fresh
-            cand, B_exact, lam_c = lax.cond(
-                early,
-                lambda: sqp.exact_hessian(problem, control, a + step_taken, simulator, weights),
-                lambda: (sqp.restricted(problem, control, a + step_taken, simulator), B, lam_c),
-            )
-        else:
-            cand, B_exact, lam_c = sqp.exact_hessian(problem, control, a + step_taken, simulator, weights)
+        cand = sqp.restricted(problem, control, a + step_taken, simulator)
+        least_squares = lambda cand: jnp.nan_to_num(
+            least_squares_multipliers(cand, sqp.path_active), nan=0.0, posinf=0.0, neginf=0.0
+        )
+        lam_c = only_where(first, least_squares, lam_c, cand)
         phi = merit(cand, lam_c, mu)
         finite = (cand.status == Status.SUCCESS) & jnp.isfinite(phi)
         descent = dphi0 < 0
@@ -292,11 +277,19 @@ class LineSearch(eqx.Module):
         slack = 10.0 * jnp.finfo(phi.dtype).eps * (1.0 + jnp.abs(phi0))
         accept = finite & (first | (descent & (phi <= phi0 + self.armijo * alpha * dphi0 + slack)))
 
-        # accepted: Hessian update at the new point
+        # accepted: the Hessian at the new point, exact (the trust region's kernel: a second
+        # integration) or, with BFGS, updated
         if sqp.hessian == "bfgs":
-            B_acc = jnp.where(early, B_exact, _bfgs_step(B, step_taken, cand, ev, lam_c))
+            # exact at the start, for the first `exact_iterations` iterations and (unless pure
+            # BFGS, `exact_iterations=0`) at the accepted candidate of a line search that
+            # backtracked: a BFGS model whose full step was rejected is replaced by the exact
+            # one (BFGS cannot learn a free scale of the parameters, e.g. a control vector
+            # normalized in the dynamics; measurements in benchmarks/RESULTS.md)
+            early = first | (state.num_iterations < sqp.exact_iterations)
+            if sqp.exact_iterations > 0:
+                early = early | ~fresh
         else:
-            B_acc = B_exact
+            early = jnp.array(True)
         # rejected: a shorter step (quadratic interpolation of the merit, safeguarded)
         curv = (phi - phi0 - dphi0 * alpha) / alpha**2
         alpha_q = jnp.where(curv > 0, -dphi0 / (2.0 * jnp.where(curv > 0, curv, 1.0)), 0.1 * alpha)
@@ -332,10 +325,19 @@ class LineSearch(eqx.Module):
         bad_start = first & ~accept
         done = converged | stalled | bad_start
         infeasible = stalled & ~feasible  # tested only there (least squares over every row)
-        infeasible = lax.cond(
-            infeasible, lambda: locally_infeasible(kkt_ev, sqp.path_active, sqp.acceptable_gtol), lambda: infeasible
+        infeasible = only_where(
+            infeasible, lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol), infeasible, kkt_ev
         )
 
+        exact = accept & early & ~done  # (none at the last point)
+        B_acc = only_where(
+            exact,
+            lambda a, cand, lam: sqp.exact_hessian(problem, control, a, simulator, cand, lam),
+            _bfgs_step(B, step_taken, cand, ev, lam_c) if sqp.hessian == "bfgs" else B,
+            a + step_taken,
+            cand,
+            lam_c,
+        )
         i = state.num_steps
         history = state.history.record(
             i,
@@ -369,7 +371,7 @@ class LineSearch(eqx.Module):
             num_flat=flat.astype(jnp.int32),
             best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
             num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
-            num_integrations=state.num_integrations + 1,
+            num_integrations=state.num_integrations + 1 + exact.astype(jnp.int32),
             num_steps=i + 1,
             done=done,
             status=Status.where(

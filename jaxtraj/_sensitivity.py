@@ -24,6 +24,7 @@ from jax import lax
 
 from ._bounds import bound_rows
 from ._checks import check_inputs
+from ._kkt import lagrangian_gradient
 from ._problem import Problem
 from ._simulate import (
     RK4,
@@ -360,6 +361,65 @@ def unevaluated(fn, *args):
 
 
 evaluate_jitted = eqx.filter_jit(evaluate_restricted)
+
+
+#: `lagrangian_hessian` takes the Hessian by segments where the parameters are at least this
+#: many times a segment's tangents: hypersensitive (41 parameters, 4 tangents) 3x faster per
+#: solve, 0.15 s more compile; at ratios 2-3.2 (Goddard, Zermelo, brachistochrone, orbit
+#: raising) the compile grew by 0.2-1.2 s for a warm gain of 0-12 ms (benchmarks/RESULTS.md)
+SEGMENT_HESSIAN_RATIO = 4
+
+
+def lagrangian_hessian(problem, control, a, simulator, lam):
+    """Hessian of the Lagrangian G + lambda^T [E; C] at `a` (zero if not finite; `lam` holds
+    the multipliers of E, then, for a problem with inequalities, those of its inequality rows
+    (`_kkt.inequality_rows`: path points, terminal inequalities, then the bound rows, which are
+    linear in a and add no curvature)). With RK4: forward over reverse autodiff of the plain
+    simulation (dense on the grid where there are path constraints), the RK4 step
+    rematerialized in the reverse pass, which compiles faster; 1-5.5x faster warm than forward
+    over the forward sensitivities, most where there are many parameters and rows. Without
+    path constraints, and where the parameters are at least `SEGMENT_HESSIAN_RATIO` x the
+    tangents of a segment (n states + r columns of its `segment_data`'s basis), by segments
+    instead (`_sensitivity.segment_hessian`: n + r tangents instead of one per parameter).
+    Forward over forward otherwise (diffrax runs with forward-mode adjoints only). Timings:
+    benchmarks/RESULTS.md."""
+    if isinstance(simulator, RK4):
+        m = problem.num_constraints
+
+        def terminal_part(tf, xf, C):
+            D = jnp.zeros(0, a.dtype)
+            if problem.terminal_inequality is not None:
+                D = problem.terminal_inequality(tf, xf, problem.args)
+            weights = lam[m : m + C.size + D.shape[0]]
+            return (
+                problem.objective(tf, xf, problem.args)
+                + lam[:m] @ problem.terminal(tf, xf, problem.args)
+                + weights @ jnp.concatenate([C.reshape(-1), D])
+            )
+
+        basis = affine_segment_basis(control, a) if problem.path is None else None
+        if basis is not None and a.shape[0] >= SEGMENT_HESSIAN_RATIO * (problem.num_states + basis.shape[-1]):
+            empty = jnp.zeros(0, a.dtype)
+            W = segment_hessian(problem, control, a, simulator, lambda tf, xf: terminal_part(tf, xf, empty), basis)
+        else:
+
+            def lagrangian(a):
+                if problem.path is None:
+                    xf, _ = final_state(problem, control, a, simulator)
+                    C = jnp.zeros(0, a.dtype)
+                else:
+                    xf, (_, C, _) = path_values(problem, control, a, simulator)
+                return terminal_part(control.tf(a), xf, C)
+
+            W = jax.jacfwd(jax.grad(lagrangian))(a)
+    else:
+
+        def gradient(a):
+            return lagrangian_gradient(evaluate_jitted(problem, control, a, simulator, "forward"), lam)
+
+        W = jax.jacfwd(gradient)(a)
+    W = 0.5 * (W + W.T)
+    return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)  # a failed integration: no curvature
 
 
 def evaluate(

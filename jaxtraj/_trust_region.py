@@ -92,13 +92,13 @@ from jax import lax
 
 from ._bounds import bound_excess, knot_gap_rows
 from ._checks import check_settings
+from ._driver import only_where
 from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
     inequality_rows,
     is_feasible,
     kkt_outcome,
-    lagrangian_gradient,
     least_squares_multipliers,
     locally_infeasible,
     merit,
@@ -106,70 +106,11 @@ from ._kkt import (
     stationarity,
     with_knot_gaps,
 )
-from ._sensitivity import Evaluation, affine_segment_basis, evaluate_jitted, path_values, segment_hessian
-from ._simulate import RK4, final_state
+from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian
 from ._solution import History
 from ._status import Status, failed
 
 _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the bracket)
-
-#: `lagrangian_hessian` takes the Hessian by segments where the parameters are at least this
-#: many times a segment's tangents: hypersensitive (41 parameters, 4 tangents) 3x faster per
-#: solve, 0.15 s more compile; at ratios 2-3.2 (Goddard, Zermelo, brachistochrone, orbit
-#: raising) the compile grew by 0.2-1.2 s for a warm gain of 0-12 ms (benchmarks/RESULTS.md)
-SEGMENT_HESSIAN_RATIO = 4
-
-
-def lagrangian_hessian(problem, control, a, simulator, lam):
-    """Hessian of the Lagrangian G + lambda^T [E; C] at `a` (zero if not finite; `lam` holds
-    the multipliers of E, then, for a problem with inequalities, those of its inequality rows
-    (`_kkt.inequality_rows`: path points, terminal inequalities, then the bound rows, which are
-    linear in a and add no curvature)). With RK4: forward over reverse autodiff of the plain
-    simulation (dense on the grid where there are path constraints), the RK4 step
-    rematerialized in the reverse pass, which compiles faster; 1-5.5x faster warm than forward
-    over the forward sensitivities, most where there are many parameters and rows. Without
-    path constraints, and where the parameters are at least `SEGMENT_HESSIAN_RATIO` x the
-    tangents of a segment (n states + r columns of its `segment_data`'s basis), by segments
-    instead (`_sensitivity.segment_hessian`: n + r tangents instead of one per parameter).
-    Forward over forward otherwise (diffrax runs with forward-mode adjoints only). Timings:
-    benchmarks/RESULTS.md."""
-    if isinstance(simulator, RK4):
-        m = problem.num_constraints
-
-        def terminal_part(tf, xf, C):
-            D = jnp.zeros(0, a.dtype)
-            if problem.terminal_inequality is not None:
-                D = problem.terminal_inequality(tf, xf, problem.args)
-            weights = lam[m : m + C.size + D.shape[0]]
-            return (
-                problem.objective(tf, xf, problem.args)
-                + lam[:m] @ problem.terminal(tf, xf, problem.args)
-                + weights @ jnp.concatenate([C.reshape(-1), D])
-            )
-
-        basis = affine_segment_basis(control, a) if problem.path is None else None
-        if basis is not None and a.shape[0] >= SEGMENT_HESSIAN_RATIO * (problem.num_states + basis.shape[-1]):
-            empty = jnp.zeros(0, a.dtype)
-            W = segment_hessian(problem, control, a, simulator, lambda tf, xf: terminal_part(tf, xf, empty), basis)
-        else:
-
-            def lagrangian(a):
-                if problem.path is None:
-                    xf, _ = final_state(problem, control, a, simulator)
-                    C = jnp.zeros(0, a.dtype)
-                else:
-                    xf, (_, C, _) = path_values(problem, control, a, simulator)
-                return terminal_part(control.tf(a), xf, C)
-
-            W = jax.jacfwd(jax.grad(lagrangian))(a)
-    else:
-
-        def gradient(a):
-            return lagrangian_gradient(evaluate_jitted(problem, control, a, simulator, "forward"), lam)
-
-        W = jax.jacfwd(gradient)(a)
-    W = 0.5 * (W + W.T)
-    return jnp.where(jnp.all(jnp.isfinite(W)), W, 0.0)  # a failed integration: no curvature
 
 
 def _curvature_floor(ev: Evaluation, lam, a):
@@ -460,8 +401,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # parameters of at least `feasibility_first` (module docs)
     far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
 
-    # a new step (no integration); only where no correction is pending (in a single solve:
-    # under vmap both branches of `lax.cond` run)
+    # a new step (no integration); only where no correction is pending
     if with_rows:
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (module docs)
@@ -469,20 +409,23 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         B = convexify_blockwise(W, A, sqp.min_curvature, _curvature_floor(ev, state.lam, a))
         gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
 
-        def new_step():
-            d, lam_qp = sqp.direction(ev, B, state.lam, knots, dknots, state.radius, gaps)
-            return d * jnp.minimum(1.0, state.radius / jnp.maximum(jnp.max(jnp.abs(d)), 1e-300)), lam_qp
+        def new_step(ev, B, lam, radius, gaps):
+            d, lam_qp = sqp.direction(ev, B, lam, knots, dknots, radius, gaps)
+            return d * jnp.minimum(1.0, radius / jnp.maximum(jnp.max(jnp.abs(d)), 1e-300)), lam_qp
 
-        d, lam_qp = lax.cond(fresh, new_step, lambda: (state.d, state.lam_qp))
+        d, lam_qp = only_where(fresh, new_step, (state.d, state.lam_qp), ev, B, state.lam, state.radius, gaps)
         newton = jnp.asarray(jnp.inf, a.dtype)  # (the QP's own minimizer is not formed)
         lam = sqp.release_inactive(ev, state.lam, lam_qp)
         size = lambda d: jnp.max(jnp.abs(d))
     else:
         B = W
-        d, newton = lax.cond(
+        d, newton = only_where(
             fresh,
-            lambda: trust_region_step(ev, W, state.radius, knots, dknots, tr.zeta, tr.gap_floor, far),
-            lambda: (state.d, jnp.asarray(jnp.inf, a.dtype)),
+            lambda ev, W, radius: trust_region_step(ev, W, radius, knots, dknots, tr.zeta, tr.gap_floor, far),
+            (state.d, jnp.asarray(jnp.inf, a.dtype)),
+            ev,
+            W,
+            state.radius,
         )
         lam, lam_qp = state.lam, state.lam_qp  # (QP multipliers only with inequality rows)
         size = jnp.linalg.norm
@@ -506,7 +449,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     cand = evaluate_jitted(problem, control, a + total, simulator, "forward")
     # the candidate's multipliers: the QP's with inequalities (least squares at the start)
     if with_rows:
-        lam_c = lax.cond(first, lambda: _multipliers(cand, sqp.path_active), lambda: lam_qp)
+        lam_c = only_where(first, lambda cand: _multipliers(cand, sqp.path_active), lam_qp, cand)
     else:
         lam_c = _multipliers(cand, sqp.path_active)
     phi = merit(cand, lam, mu)
@@ -556,7 +499,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     kkt_ev = with_knot_gaps(control, new_ev, new_a)
     # the stationarity test only where it can decide (SUCCESS needs feasibility): with
     # inequalities it is rounds of least squares over every near-active or violated row
-    pg = lax.cond(feasible, lambda: stationarity(kkt_ev, new_a, sqp.path_active), lambda: jnp.inf)
+    pg = only_where(
+        feasible, lambda ev, a: stationarity(ev, a, sqp.path_active), jnp.asarray(jnp.inf, a.dtype), kkt_ev, new_a
+    )
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
     # a feasible point, a fresh step inside the radius (the model's own minimizer) predicts a
@@ -567,18 +512,17 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
     bad_start = first & ~accept
     infeasible = stalled & ~feasible  # tested only there (least squares over every row)
-    infeasible = lax.cond(
+    infeasible = only_where(
         infeasible,
-        lambda: locally_infeasible(with_knot_gaps(control, new_ev, new_a), sqp.path_active, sqp.acceptable_gtol),
-        lambda: infeasible,
+        lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol),
+        infeasible,
+        with_knot_gaps(control, new_ev, new_a),
     )
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
-    # first-order integration alone (in a single solve; under vmap both branches run).
+    # first-order integration alone.
     hessian = accept & ~converged & ~stalled
-    new_W = lax.cond(
-        hessian,
-        lambda: lagrangian_hessian(problem, control, new_a, simulator, new_lam),
-        lambda: W,
+    new_W = only_where(
+        hessian, lambda a, lam: lagrangian_hessian(problem, control, a, simulator, lam), W, new_a, new_lam
     )
     i = state.num_steps
     history = state.history.record(

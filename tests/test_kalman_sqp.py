@@ -16,11 +16,10 @@ from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
 from jaxtraj._kkt import active_rows, constraint_rows, kkt_outcome, lagrangian_gradient, merit
 from jaxtraj._line_search import bfgs_update
-from jaxtraj._sensitivity import evaluate_restricted
+from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
 from jaxtraj._trust_region import (
     _curvature_floor,
     convexify_blockwise,
-    lagrangian_hessian,
     min_norm_step,
     normal_step,
     subproblem,
@@ -187,7 +186,7 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
     def start(a0):
         ev = evaluate_restricted(prob, ctrl, a0, sim)
         lam = jnp.linalg.lstsq(ev.H.T, -ev.G_a)[0]
-        _, B, _ = solver.exact_hessian(prob, ctrl, a0, sim, lam)
+        B = solver.exact_hessian(prob, ctrl, a0, sim, ev, lam)
         d, lam_qp = solver.direction(ev, B, lam, ctrl.knots(a0), jax.jacfwd(ctrl.knots)(a0))
         return (lam, B, d, *solver.globalization.start(solver, ev, lam, 0.0, B, d, lam_qp))
 
