@@ -160,7 +160,9 @@ def vmapped(n=8):
     solves on the same n starts, on a problem without path constraints (Earth-Mars case 4) and
     two with them (the attitude slew's keep-out cone, Bryson-Denham's state bound): a lane's
     data-dependent work (a Hessian, a fallback test) must not cost every lane every step
-    (issue 21)."""
+    (issue 21). "tail": n x the most steps of a start / the steps of all n (a vmapped group
+    iterates until its slowest start is done; a longer queue of starts amortizes it); "per
+    step": (vmapped / loop) / tail, the cost of a vmapped lane-step against a single step."""
     from jaxtraj.problems import attitude
 
     entry = jt.problems.classic.get("bryson-denham")
@@ -173,9 +175,10 @@ def vmapped(n=8):
     print(f"## Every solver vmapped: solve_batch(lanes={n}) on one device against a loop of single solves")
     print()
     print(
-        "| problem | solver | loop (s) | vmapped (s) | vmapped / loop | iterations loop / vmapped | SUCCESS loop / vmapped |"
+        "| problem | solver | loop (s) | vmapped (s) | vmapped / loop | tail | per step | iterations loop / vmapped "
+        "| SUCCESS loop / vmapped |"
     )
-    print("|---|---|---:|---:|---:|---|---|")
+    print("|---|---|---:|---:|---:|---:|---:|---|---|")
     for title, prob, ctrl, a0, sim in problems:
         a0s = np.asarray(random_starts(prob, ctrl, jax.random.key(0), n, a0, SPREAD, simulator=sim))
         for name, solver in SOLVERS.items():
@@ -190,12 +193,15 @@ def vmapped(n=8):
             sols = solve_batch(prob, ctrl, a0s, solver, **kw)
             batch = time.perf_counter() - t0
             its = (np.mean([int(s.iterations) for s in singles]), np.mean(np.asarray(sols.iterations)))
+            steps = np.array([int(s.steps) for s in singles])
+            tail = n * steps.max() / steps.sum()  # a vmapped group runs until its slowest lane is done
             ok = (
                 sum(int(s.status == jt.Status.SUCCESS) for s in singles),
                 int(np.sum(sols.status == jt.Status.SUCCESS)),
             )
             print(
-                f"| {title} | {name} | {loop:.2f} | {batch:.2f} | {batch / loop:.2f} | {its[0]:.0f} / {its[1]:.0f} "
+                f"| {title} | {name} | {loop:.2f} | {batch:.2f} | {batch / loop:.2f} | {tail:.2f} "
+                f"| {batch / loop / tail:.2f} | {its[0]:.0f} / {its[1]:.0f} "
                 f"| {ok[0]} / {ok[1]} of {n} |",
                 flush=True,
             )

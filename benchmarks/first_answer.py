@@ -36,7 +36,8 @@ import numpy as np
 import jaxtraj as jt
 from jaxtraj._driver import run
 from jaxtraj._kkt import least_squares_multipliers
-from jaxtraj._sensitivity import evaluate_restricted
+from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
+from jaxtraj._simulate import final_state
 from jaxtraj.problems import earth_mars
 
 jax.config.update("jax_enable_compilation_cache", False)
@@ -73,14 +74,17 @@ def first_call(solver, problem, control, a0, simulator):
 
 def pieces(problem, control, a0, simulator):
     """Trace + lower and XLA compile of the default solver's kernels, each as a program of its
-    own: the evaluation with forward sensitivities, the exact Hessian of the Lagrangian
-    (`KalmanSQP.exact_hessian`) and the QP step (`KalmanSQP.direction`, with B = I)."""
+    own: the simulation alone (a floor: no solver compiles less), the evaluation with forward
+    sensitivities, the exact Hessian of the Lagrangian
+    (`_sensitivity.lagrangian_hessian`, both globalizations' kernel) and the QP step
+    (`KalmanSQP.direction`, with B = I)."""
     sqp = jt.KalmanSQP()
     ev = evaluate_restricted(problem, control, a0, simulator, "forward")
     lam = least_squares_multipliers(ev, sqp.path_active)
     kernels = {
+        "simulation alone (no sensitivities)": (lambda a: final_state(problem, control, a, simulator)[0], (a0,)),
         "evaluation (forward)": (lambda a: evaluate_restricted(problem, control, a, simulator, "forward"), (a0,)),
-        "exact Hessian": (lambda a, ev, lam: sqp.exact_hessian(problem, control, a, simulator, ev, lam), (a0, ev, lam)),
+        "exact Hessian": (lambda a, lam: lagrangian_hessian(problem, control, a, simulator, lam), (a0, lam)),
         "QP step": (
             lambda ev, B, lam, a: sqp.direction(ev, B, lam, control.knots(a), jax.jacfwd(control.knots)(a), 0.5),
             (ev, np.eye(a0.shape[0]), lam, a0),
