@@ -18,10 +18,12 @@ constraints, bounds, running costs) the same columns for that problem from its n
 the gallery's RK4(40), without a CasADi row (its NLP is written out for Earth-Mars only).
 
 `--pieces` adds the default solver's kernels compiled apart (evaluation, exact Hessian, QP
-step): what each costs of the whole program.
+step): what each costs of the whole program. `--cache` runs the default solver's first call in
+three new processes that share one empty `jt.enable_compilation_cache` folder: a script run
+again.
 
 Run: `python benchmarks/first_answer.py [--case 4 | --problem bryson-denham] [--repeats 3]
-[--pieces]`.
+[--pieces] [--cache]`.
 """
 
 import argparse
@@ -101,6 +103,34 @@ def pieces(problem, control, a0, simulator):
         print(f"| {name} | {t1 - t0:.2f} | {t2 - t1:.2f} | {len(lowered.as_text().splitlines())} |", flush=True)
 
 
+_CACHED_RUN = """
+import sys, time
+import jax, jaxtraj as jt
+from jaxtraj.problems import earth_mars
+jt.enable_compilation_cache(sys.argv[1])
+problem, control, a0 = earth_mars.thesis_case(int(sys.argv[2]))
+t = time.perf_counter()
+sol = jt.solve(problem, control, a0, simulator=jt.RK4(100))
+jax.block_until_ready(sol.params)
+print(time.perf_counter() - t, jt.status_name(sol.status))
+"""
+
+
+def cached_runs(case, runs=3):
+    """The default solver's first call in `runs` new processes sharing one empty folder of
+    `jt.enable_compilation_cache`: a script run again loads its programs from disk."""
+    import subprocess
+    import tempfile
+
+    print("\n| process (one compilation cache folder) | first call of jt.solve (s) | status |\n|---|---:|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        for k in range(runs):
+            out = subprocess.run(
+                [sys.executable, "-c", _CACHED_RUN, folder, str(case)], capture_output=True, text=True, check=True
+            ).stdout.split()
+            print(f"| {k + 1}{' (empty folder)' if k == 0 else ''} | {float(out[0]):.2f} | {out[1]} |", flush=True)
+
+
 def warm(solver, problem, control, a0, simulator, repeats):
     jt.solve(problem, control, a0, solver, simulator=simulator).params.block_until_ready()
     best = np.inf
@@ -168,6 +198,9 @@ def main():
     parser.add_argument("--problem", choices=jt.problems.classic.names(), help="a gallery problem instead")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--pieces", action="store_true", help="also the default solver's kernels, compiled apart")
+    parser.add_argument(
+        "--cache", action="store_true", help="also the default's first call in new processes with a compilation cache"
+    )
     args = parser.parse_args()
     if args.problem:
         entry = jt.problems.classic.get(args.problem)
@@ -213,6 +246,8 @@ def main():
         )
     if args.pieces:
         pieces(problem, control, a0, simulator)
+    if args.cache and not args.problem:
+        cached_runs(args.case)
 
 
 if __name__ == "__main__":

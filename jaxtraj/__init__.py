@@ -113,6 +113,7 @@ from ._batch import (
     random_starts as random_starts,
     solve_batch as solve_batch,
 )
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._driver import AbstractSolver as AbstractSolver
 from ._kalman_search import KalmanSearch as KalmanSearch
 from ._kalman_sqp import KalmanSQP as KalmanSQP

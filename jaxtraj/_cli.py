@@ -249,22 +249,6 @@ def load_user_problem(spec, args):
     return prob, ctrl, a0
 
 
-def _enable_compilation_cache():
-    import jax
-
-    folder = os.environ.get("JAXTRAJ_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxtraj", "xla"
-    )
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError:
-        return None
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return folder
-
-
 #: What this command holds until it exits: the lock on its --out folder.
 _HELD = contextlib.ExitStack()
 
@@ -379,7 +363,9 @@ def _solve(args):
     from jaxtraj import io
     from jaxtraj.plot import batch_figure, write_figures
 
-    _enable_compilation_cache()
+    from ._cache import default_cache_folder, enable_compilation_cache
+
+    enable_compilation_cache(default_cache_folder())
     from ._checks import check_inputs
 
     prob, ctrl, a0, solver, label, r_target = _setup(args.problem, args)
@@ -508,7 +494,9 @@ def _solve(args):
 
 def _reproduce(args):
     _check_out(args.out)
-    _enable_compilation_cache()
+    from ._cache import default_cache_folder, enable_compilation_cache
+
+    enable_compilation_cache(default_cache_folder())
     from jaxtraj.reproduce import main as reproduce_main
 
     reproduce_main(args.out)

@@ -2,6 +2,9 @@
 
 import contextlib
 import logging
+import os
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -61,3 +64,36 @@ def test_new_starts_args_and_names_reuse_the_compiled_solver():
     with compilations() as names:
         _solve(base, four, np.asarray(four.initial_guess(1.2, 0.0, 0.0)))
     assert names.count("jit(run)") == 1 and len(names) <= 4, names
+
+
+_RUN_TWICE = """
+import jax, jaxtraj as jt
+events = []
+jax.monitoring.register_event_listener(lambda event, **kw: events.append(event))
+folder = jt.enable_compilation_cache()
+e = jt.problems.classic.get("lq")
+s = jt.solve(e.problem, e.control, e.start, simulator=jt.RK4(10))
+count = lambda tail: sum(name.endswith(tail) for name in events)
+print(folder, count("/compile_requests_use_cache"), count("/cache_hits"), repr(float(s.objective)), jt.status_name(s.status))
+"""
+
+
+def test_compilation_cache_serves_a_new_process(tmp_path):
+    """`jt.enable_compilation_cache()` (folder from $JAXTRAJ_CACHE_DIR): a second process running
+    the same solve loads every program it compiles from disk (JAX's cache-hit events), with the
+    same result; the first found none there."""
+    env = {
+        **os.environ,
+        "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"),
+        "PYTHONPATH": os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    }
+    runs = []
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-c", _RUN_TWICE], capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr
+        runs.append(r.stdout.split())
+    (folder, requests, hits, objective, status), again = runs
+    assert folder == str(tmp_path / "cache") and os.listdir(folder)
+    assert int(requests) >= 1 and int(hits) == 0
+    assert again[0] == folder and again[1] == requests and again[2] == requests  # every program from disk
+    assert again[3:] == [objective, status] and status == "SUCCESS"

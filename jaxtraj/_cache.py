@@ -1,0 +1,46 @@
+"""`jt.enable_compilation_cache`: compiled solvers kept on disk across Python processes."""
+
+import os
+
+import jax
+
+
+def default_cache_folder() -> str:
+    """`$JAXTRAJ_CACHE_DIR`, else `$XDG_CACHE_HOME/jaxtraj/xla` (`~/.cache/jaxtraj/xla`)."""
+    return os.environ.get("JAXTRAJ_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxtraj", "xla"
+    )
+
+
+def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | None:
+    """Keep every compiled program on disk, so that a new Python process that runs the same
+    solve again (same problem functions, control family and segment count, solver settings,
+    simulator; any start) loads it instead of compiling it.
+
+    A new problem still compiles: what this saves is the XLA compile of a script run again
+    (on case 4, the default solver's first call 2.3 s -> about 0.8 s, the trace of the program
+    that remains; benchmarks/RESULTS.md). This is JAX's persistent compilation cache
+    (`jax_compilation_cache_dir`), with every program kept whatever its size or compile
+    time; JAX keys each entry by the program, the backend and the JAX version, so a stale
+    entry is never used. The `jaxtraj` command calls it for every run. Call it before the
+    first solve of the process.
+
+    **Arguments:**
+
+    - `folder`: where the programs go (created if missing). Default: the folder JAX was
+      already given (`jax.config.jax_compilation_cache_dir`), else `$JAXTRAJ_CACHE_DIR`, else
+      `$XDG_CACHE_HOME/jaxtraj/xla` (`~/.cache/jaxtraj/xla`).
+
+    **Returns:** the folder, or None if it cannot be created (nothing is changed then).
+    """
+    if folder is None:
+        folder = jax.config.jax_compilation_cache_dir or default_cache_folder()
+    folder = os.fspath(folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return folder
