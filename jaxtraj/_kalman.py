@@ -81,8 +81,9 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     # settled: observed again through a covariance that already pins it (the QP's gap rows),
     # its gain is round-off over round-off (it moved a pendulum's bounded levels by 1e-5)
     tiny = 1e-14 * jnp.max(jnp.abs(knots))
-    settled = (jnp.abs(gaps) <= tiny) & (jnp.abs(gaps + D @ da) <= tiny)
-    violated = (gaps + D @ da <= 0.0) & ~settled
+    after = gaps + D @ da
+    settled = (jnp.abs(gaps) <= tiny) & (jnp.abs(after) <= tiny)
+    violated = (after <= 0.0) & ~settled
     close = violated & (gaps <= collapse)
     z_star = jnp.where(close, gaps, gaps / a_t)
     r_star = jnp.where(close, 0.0, (z_star**2) / 12.0) + 1e-300  # closed: noise-free

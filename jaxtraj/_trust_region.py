@@ -516,7 +516,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         infeasible,
         lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol),
         infeasible,
-        with_knot_gaps(control, new_ev, new_a),
+        kkt_ev,
     )
     # The Hessian only at an accepted point that is not the last: a rejected candidate costs a
     # first-order integration alone.
