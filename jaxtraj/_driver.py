@@ -27,8 +27,10 @@ class AbstractSolver(eqx.Module):
     candidate point with sensitivities (KalmanSQP adds one second-order integration, the
     exact Hessian, at an accepted point; `Solution.integrations` counts them all) and
     records one History entry. A batch runs `step` vmapped, finished lanes included (their
-    results are dropped): work only some steps need belongs under `only_where`. Everything static (configuration, shapes) stays the same from step to step: the
-    driver checks it at trace time.
+    results are dropped, their state marked `done`): work only some steps need belongs
+    under `only_where`, with a predicate that is False where `state.done`. Everything static
+    (configuration, shapes) stays the same from step to step: the driver checks it at trace
+    time.
     """
 
     @abc.abstractmethod
@@ -48,6 +50,18 @@ class AbstractSolver(eqx.Module):
         """Scalars worth printing during a long solve (name -> array)."""
 
 
+def _once(pred, fn, otherwise, operands):
+    """`fn(*operands)` if `pred` else `otherwise`: a loop of at most one round. The operands
+    pass through an optimization barrier with the loop's predicate: else XLA hoists `fn`'s
+    work, invariant in the loop, out of it, and runs it every time."""
+
+    def body(carry):
+        pred, args = lax.optimization_barrier((carry[0], operands))
+        return jnp.zeros_like(pred), fn(*args)
+
+    return lax.while_loop(lambda carry: carry[0], body, (jnp.asarray(pred), otherwise))[1]
+
+
 def only_where(pred, fn, otherwise, *operands):
     """`fn(*operands)` where `pred`, else `otherwise` (a tree of `fn`'s output structure and
     dtypes): the data-dependent work of a step (a Hessian, a fallback test) that most steps
@@ -55,17 +69,35 @@ def only_where(pred, fn, otherwise, *operands):
 
     In one solve this is `lax.cond`. Under `vmap` (the batch lanes, a user's `jax.vmap` of
     `jt.solve`) a `lax.cond` on a per-lane predicate runs both branches on every lane, so a
-    batch would pay the expensive branch every step; this is a loop of at most one round
-    instead, which runs `fn` (on every lane, kept where `pred`) only in a step where some
-    lane needs it (issue 21). The operands pass through an optimization barrier with the
-    loop's predicate: else XLA hoists `fn`'s work, invariant in the loop, out of it, and runs
-    it in every step."""
+    batch would pay the expensive branch every step. Here (a `custom_vmap` rule) `fn` runs,
+    vmapped, only in a step where some lane needs it, and the lanes that do not need it run
+    it on the inputs of one that does (their results are dropped): a loop inside `fn` (the
+    trust region's QP rounds, KalmanSearch's re-tuning) then iterates as long as the lanes
+    that need it, not as long as the worst lane on its own stale data (issue 21). `fn` may
+    close over per-lane values: they are hoisted into inputs (`eqx.filter_closure_convert`),
+    since a `custom_vmap` function may not close over batched ones."""
+    closed = eqx.filter_closure_convert(fn, *operands)
+    dynamic, static = eqx.partition(closed, eqx.is_array)
 
-    def body(carry):
-        pred, args = lax.optimization_barrier((carry[0], operands))
-        return jnp.zeros_like(pred), fn(*args)
+    @jax.custom_batching.custom_vmap
+    def call(pred, dynamic, otherwise, operands):
+        return _once(pred, eqx.combine(dynamic, static), otherwise, operands)
 
-    return lax.while_loop(lambda carry: carry[0], body, (jnp.asarray(pred), otherwise))[1]
+    @call.def_vmap
+    def rule(axis_size, in_batched, pred, dynamic, otherwise, operands):
+        args = (pred, dynamic, otherwise, operands)
+        pred, dynamic, otherwise, operands = jax.tree.map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), args, tuple(in_batched)
+        )
+        per_lane = lambda mask, x: mask.reshape(mask.shape + (1,) * (x.ndim - 1))
+        donor = jnp.argmax(pred)  # a lane that needs fn (any, when none does: then fn does not run)
+        inputs = jax.tree.map(lambda x: jnp.where(per_lane(pred, x), x, x[donor]), (dynamic, operands))
+        vmapped = jax.vmap(lambda d, ops: eqx.combine(d, static)(*ops))
+        out = _once(jnp.any(pred), vmapped, otherwise, inputs)
+        out = jax.tree.map(lambda n, o: jnp.where(per_lane(pred, n), n, o), out, otherwise)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return call(jnp.asarray(pred), dynamic, otherwise, operands)
 
 
 def _print_progress(step, values):

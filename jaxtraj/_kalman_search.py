@@ -331,9 +331,10 @@ class KalmanSearch(AbstractSolver):
         knots = control.knots(a)
         dknots = jax.jacfwd(control.knots)(a)
         # A shrunk candidate from a rejected step is retried as it is; only a fresh step
-        # runs the filter and the preliminary re-tuning loop.
+        # runs the filter and the preliminary re-tuning loop (and, under `vmap`, a finished
+        # lane, which still runs the step, nothing).
         da, rho, beta, beta_p, stationary = only_where(
-            ~state.has_pending,
+            ~state.has_pending & ~state.done,
             lambda ev, rho, beta, beta_p, e_a: self._preliminary(ev, rho, beta, beta_p, phase, e_a, knots, dknots),
             (state.da_pending, state.rho, state.beta, state.beta_p, jnp.array(False)),
             ev,
@@ -398,7 +399,15 @@ class KalmanSearch(AbstractSolver):
         n_rej = jnp.where(accept, 0, state.num_rejections + 1)
 
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
-        pg = stationarity(new_ev, new_a, e_a)
+        # (the projected gradient only where it can decide: least-squares rounds over the
+        # near-active rows)
+        pg = only_where(
+            (new_phase == 1) & (maxE <= e_a) & ~state.done,
+            lambda ev, a: stationarity(ev, a, e_a),
+            jnp.asarray(jnp.inf, a.dtype),
+            new_ev,
+            new_a,
+        )
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
         converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)

@@ -325,13 +325,17 @@ class LineSearch(eqx.Module):
         bad_start = first & ~accept
         done = converged | stalled | bad_start
         infeasible = stalled & ~feasible  # tested only there (least squares over every row)
+        live = ~state.done  # (under `vmap` a finished lane still runs the step: no extra work)
         infeasible = only_where(
-            infeasible, lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol), infeasible, kkt_ev
+            infeasible & live,
+            lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol),
+            infeasible,
+            kkt_ev,
         )
 
         exact = accept & early & ~done  # (none at the last point)
         B_acc = only_where(
-            exact,
+            exact & live,
             lambda a, cand, lam: sqp.exact_hessian(problem, control, a, simulator, cand, lam),
             _bfgs_step(B, step_taken, cand, ev, lam_c) if sqp.hessian == "bfgs" else B,
             a + step_taken,

@@ -396,6 +396,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     ev, a, W = state.ev, state.a, state.W
     knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
     fresh = ~state.soc
+    # (under `vmap` a finished lane still runs the step, its result discarded: it asks
+    # `only_where` for no work)
+    live = ~state.done
     with_rows = inequality_rows(ev) is not None
     # far from feasible: the linearized constraints ask for a relative change of the
     # parameters of at least `feasibility_first` (module docs)
@@ -413,14 +416,14 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
             d, lam_qp = sqp.direction(ev, B, lam, knots, dknots, radius, gaps)
             return d * jnp.minimum(1.0, radius / jnp.maximum(jnp.max(jnp.abs(d)), 1e-300)), lam_qp
 
-        d, lam_qp = only_where(fresh, new_step, (state.d, state.lam_qp), ev, B, state.lam, state.radius, gaps)
+        d, lam_qp = only_where(fresh & live, new_step, (state.d, state.lam_qp), ev, B, state.lam, state.radius, gaps)
         newton = jnp.asarray(jnp.inf, a.dtype)  # (the QP's own minimizer is not formed)
         lam = sqp.release_inactive(ev, state.lam, lam_qp)
         size = lambda d: jnp.max(jnp.abs(d))
     else:
         B = W
         d, newton = only_where(
-            fresh,
+            fresh & live,
             lambda ev, W, radius: trust_region_step(ev, W, radius, knots, dknots, tr.zeta, tr.gap_floor, far),
             (state.d, jnp.asarray(jnp.inf, a.dtype)),
             ev,
@@ -500,7 +503,11 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # the stationarity test only where it can decide (SUCCESS needs feasibility): with
     # inequalities it is rounds of least squares over every near-active or violated row
     pg = only_where(
-        feasible, lambda ev, a: stationarity(ev, a, sqp.path_active), jnp.asarray(jnp.inf, a.dtype), kkt_ev, new_a
+        feasible & live,
+        lambda ev, a: stationarity(ev, a, sqp.path_active),
+        jnp.asarray(jnp.inf, a.dtype),
+        kkt_ev,
+        new_a,
     )
     tiny = 1e-15 * (1.0 + jnp.linalg.norm(a))
     # No measurable progress: the radius or the step is negligible (a NaN radius too), or, at
@@ -513,7 +520,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     bad_start = first & ~accept
     infeasible = stalled & ~feasible  # tested only there (least squares over every row)
     infeasible = only_where(
-        infeasible,
+        infeasible & live,
         lambda ev: locally_infeasible(ev, sqp.path_active, sqp.acceptable_gtol),
         infeasible,
         kkt_ev,
@@ -522,7 +529,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # first-order integration alone.
     hessian = accept & ~converged & ~stalled
     new_W = only_where(
-        hessian, lambda a, lam: lagrangian_hessian(problem, control, a, simulator, lam), W, new_a, new_lam
+        hessian & live, lambda a, lam: lagrangian_hessian(problem, control, a, simulator, lam), W, new_a, new_lam
     )
     i = state.num_steps
     history = state.history.record(

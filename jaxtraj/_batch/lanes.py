@@ -72,7 +72,10 @@ def _solve_queue(init1, step1, finish1, a0s, max_steps, lanes):
 
     def body(carry):
         state, lane_start, queue, out = carry
-        new = step(state)
+        # A finished lane (or an idle one) still runs the vmapped step, its result discarded;
+        # marked done it asks the step's `only_where` for no work (a lane at `max_steps`
+        # is not done by itself).
+        new = step(eqx.tree_at(lambda s: s.done, state, ~running(state, lane_start)))
         # Finished lanes keep their state, except the history: selecting it would copy the
         # (lanes, max_steps) buffers every step. Their extra records (at index `steps`) are
         # cleared by `finish`.
