@@ -81,6 +81,32 @@ def lagrangian_gradient(ev, lam):
     return ev.G_a + constraint_rows(ev).T @ lam
 
 
+def scale_free(ev, a, W, lam, tol=1e-8):
+    """Whether the problem cannot see the parameters' common scale at `a`: the objective and
+    every constraint row flat along `a` (G_a . a = 0, rows a = 0) and the Lagrangian's Hessian
+    `W` (multipliers `lam`) with W a = -grad L, the identities of a function homogeneous of
+    degree 0 in `a` (a control that enters only as a direction, u / |u|, with every parameter
+    a node of it: orbit raising's thrust). Each is tested relative to its terms (`tol`; 1e-15
+    on orbit raising, 0.06-1 on every other gallery problem; the Hessian's identity rules out
+    a start where G_a . a = 0 by chance). There a model couples the scale to the turn,
+    -beta |g| (1 - alpha) along alpha a - beta g / |g| (the same step turns a smaller control
+    further): steps at a radius shrink the scale, the gradient grows as 1 / |a| and the KKT
+    test, scaled by max(|a_i|, 1), cannot pass. The SQP steps drop the component along `a`
+    there (`without_scale`)."""
+    rows = constraint_rows(ev)
+    g = lagrangian_gradient(ev, lam)
+    na = jnp.linalg.norm(a)
+    free = jnp.abs(ev.G_a @ a) <= tol * jnp.linalg.norm(ev.G_a) * na
+    free = free & (jnp.linalg.norm(rows @ a) <= tol * jnp.linalg.norm(rows) * na)
+    free = free & (jnp.linalg.norm(W @ a + g) <= tol * (jnp.linalg.norm(W) * na + jnp.linalg.norm(g)))
+    return free & (na > 0.0)
+
+
+def without_scale(d, a, free):
+    """`d` without its component along `a` where `free` (`scale_free`), else `d`."""
+    return jnp.where(free, d - (d @ a) / jnp.where(free, a @ a, 1.0) * a, d)
+
+
 def merit_value(G, E, C, lam, mu, on=None):
     """The augmented-Lagrangian merit of both KalmanSQP globalizations: G + lambda^T E + mu/2
     |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term psi = (max(0, nu + mu C)^2 -

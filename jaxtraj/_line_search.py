@@ -53,6 +53,7 @@ from ._kkt import (
     merit_value,
     stationarity,
     with_knot_gaps,
+    without_scale,
 )
 from ._sensitivity import Evaluation
 from ._solution import History
@@ -104,6 +105,7 @@ class LineSearchState(eqx.Module):
     radius: jax.Array  # step cap |d|_inf
     num_flat: jax.Array  # accepted steps in a row within the merit's round-off (see `step`)
     best_gradient: jax.Array  # the smallest projected gradient at an accepted point
+    scale_free: jax.Array  # the problem cannot see the parameters' scale (`_kkt.scale_free`)
     num_iterations: jax.Array
     num_integrations: jax.Array
     num_steps: jax.Array
@@ -209,6 +211,7 @@ class LineSearch(eqx.Module):
             radius=jnp.asarray(self.radius, f),
             num_flat=jnp.array(0, jnp.int32),
             best_gradient=jnp.asarray(jnp.inf, f),
+            scale_free=jnp.array(False),
             num_iterations=jnp.array(0, jnp.int32),
             num_integrations=jnp.array(0, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
@@ -223,6 +226,7 @@ class LineSearch(eqx.Module):
 
         def start(B):
             d, lam_qp = sqp.direction(ev, B, lam, knots, dknots, state.radius)
+            d = without_scale(d, a, state.scale_free)  # (`_kkt.scale_free`)
             d_max = jnp.max(jnp.abs(d))
             capped = d_max > state.radius
             d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
@@ -334,10 +338,12 @@ class LineSearch(eqx.Module):
         )
 
         exact = accept & early & ~done  # (none at the last point)
-        B_acc = only_where(
+        # (with the exact Hessian, whether the problem sees the parameters' scale: a property of
+        # the problem, tested where the raw Hessian is at hand)
+        B_acc, free = only_where(
             exact & live,
-            lambda a, cand, lam: sqp.exact_hessian(problem, control, a, simulator, cand, lam),
-            _bfgs_step(B, step_taken, cand, ev, lam_c) if sqp.hessian == "bfgs" else B,
+            lambda a, cand, lam: sqp._exact_hessian(problem, control, a, simulator, cand, lam),
+            (_bfgs_step(B, step_taken, cand, ev, lam_c) if sqp.hessian == "bfgs" else B, state.scale_free),
             a + step_taken,
             cand,
             lam_c,
@@ -374,6 +380,7 @@ class LineSearch(eqx.Module):
             ),
             num_flat=flat.astype(jnp.int32),
             best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
+            scale_free=free,
             num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
             num_integrations=state.num_integrations + 1 + exact.astype(jnp.int32),
             num_steps=i + 1,

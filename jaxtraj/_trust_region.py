@@ -96,17 +96,17 @@ from ._driver import only_where
 from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
-    constraint_rows,
     inequality_rows,
     is_feasible,
     kkt_outcome,
-    lagrangian_gradient,
     least_squares_multipliers,
     locally_infeasible,
     merit,
     merit_value,
+    scale_free,
     stationarity,
     with_knot_gaps,
+    without_scale,
 )
 from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian
 from ._solution import History
@@ -394,28 +394,6 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
     )
 
 
-def without_scale_gauge(d, a, ev: Evaluation, W, lam, tol=1e-8):
-    """`d` without its component along `a` where the problem cannot see the parameters'
-    common scale: the objective and every constraint row flat along `a` (G_a . a = 0, rows
-    a = 0) and the Lagrangian's Hessian W a = -grad L, the identities of a function
-    homogeneous of degree 0 in `a` (a control that enters only as a direction, u / |u|, with
-    every parameter a node of it: orbit raising's thrust angle). There the model couples
-    the scale to the turn, -beta |g| (1 - alpha) along alpha a - beta g / |g|: the same step
-    turns a smaller control further, so a step at the radius shrinks the scale, the
-    gradient grows as 1 / |a| and the KKT test, which scales by max(|a_i|, 1), cannot pass
-    (4 of 32 random starts STALLED at the optimum's value, the scale at 1e-4). Each identity
-    is tested relative to its terms (`tol`; 1e-15 on orbit raising, 0.06-1 on the other
-    gallery problems)."""
-    rows = constraint_rows(ev)
-    g = lagrangian_gradient(ev, lam)
-    na = jnp.linalg.norm(a)
-    flat = jnp.abs(ev.G_a @ a) <= tol * jnp.linalg.norm(ev.G_a) * na
-    flat = flat & (jnp.linalg.norm(rows @ a) <= tol * jnp.linalg.norm(rows) * na)
-    flat = flat & (jnp.linalg.norm(W @ a + g) <= tol * (jnp.linalg.norm(W) * na + jnp.linalg.norm(g)))
-    flat = flat & (na > 0.0)
-    return jnp.where(flat, d - (d @ a) / jnp.where(flat, na**2, 1.0) * a, d)
-
-
 def _step(tr, sqp, problem, control, simulator, state: TRState):
     ev, a, W = state.ev, state.a, state.W
     knots, dknots = control.knots(a), jax.jacfwd(control.knots)(a)
@@ -456,7 +434,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         )
         lam, lam_qp = state.lam, state.lam_qp  # (QP multipliers only with inequality rows)
         size = jnp.linalg.norm
-    d = jnp.where(fresh, without_scale_gauge(d, a, ev, W, state.lam), d)
+    d = jnp.where(fresh, without_scale(d, a, scale_free(ev, a, W, state.lam)), d)  # (`scale_free`)
     # the penalty carries over; near feasibility it is capped at `mu_max` x its natural scale,
     # but only once the violation has halved since the last cap (`TrustRegion`)
     rows = A if with_rows else ev.H
