@@ -401,8 +401,9 @@ class KalmanSearch(AbstractSolver):
         # convergence of the minimum search at this tolerance [3.62, 4.26, 4.48]
         # (the projected gradient only where it can decide: least-squares rounds over the
         # near-active rows)
+        in_band = (new_phase == 1) & (maxE <= e_a)
         pg = only_where(
-            (new_phase == 1) & (maxE <= e_a) & ~state.done,
+            in_band & ~state.done,
             lambda ev, a: stationarity(ev, a, e_a),
             jnp.asarray(jnp.inf, a.dtype),
             new_ev,
@@ -410,7 +411,7 @@ class KalmanSearch(AbstractSolver):
         )
         gnorm_tol = jnp.maximum(self.gtol, e_a) * (1.0 + jnp.abs(new_ev.G))
         negligible = ~accept & (jnp.linalg.norm(alpha * da) <= self.e_m * (1.0 + jnp.linalg.norm(a)))
-        converged_here = (new_phase == 1) & (maxE <= e_a) & (pg <= gnorm_tol)
+        converged_here = in_band & (pg <= gnorm_tol)
         final_stage = e_a <= self.e_a * (1.0 + 1e-12)
         # A loose stage is also over when the preliminary checks found no increment that
         # decreases G inside the band [4.14, 4.19]: the search rides the band's edge, where

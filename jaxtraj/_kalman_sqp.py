@@ -86,7 +86,6 @@ from ._kkt import (
     inequality_rows,
     least_squares_multipliers,
     multipliers,
-    scale_free,
     stationarity,
     with_knot_gaps,
 )
@@ -225,20 +224,15 @@ class KalmanSQP(AbstractSolver):
         return evaluate_jitted(problem, control, a, simulator, self.method)
 
     def qp_hessian(self, W, H):
-        """The QP's positive definite B from an exact Hessian of the Lagrangian W (`convexify`)."""
-        return convexify(W, H, self.min_curvature)
+        """The QP's positive definite B from an exact Hessian of the Lagrangian W (`convexify`);
+        the identity where it is not finite."""
+        B = convexify(W, H, self.min_curvature)
+        return jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(W.shape[0]))
 
     def exact_hessian(self, problem, control, a, simulator, ev, lam):
-        """The QP's B at `a` (evaluated as `ev`): the convexified Hessian of the Lagrangian
-        with multipliers `lam` (`lagrangian_hessian`, the trust region's kernel); the
-        identity where it is not finite."""
-        return self._exact_hessian(problem, control, a, simulator, ev, lam)[0]
-
-    def _exact_hessian(self, problem, control, a, simulator, ev, lam):
-        """`exact_hessian` and `scale_free` at `a` (the raw Hessian's identity)."""
-        W = lagrangian_hessian(problem, control, a, simulator, lam)
-        B = self.qp_hessian(W, ev.H)
-        return jnp.where(jnp.all(jnp.isfinite(B)), B, jnp.eye(a.shape[0])), scale_free(ev, a, W, lam)
+        """The QP's B at `a` (evaluated as `ev`): `qp_hessian` of the Hessian of the
+        Lagrangian with multipliers `lam` (`lagrangian_hessian`, the trust region's kernel)."""
+        return self.qp_hessian(lagrangian_hessian(problem, control, a, simulator, lam), ev.H)
 
     def unevaluated(self, problem, control, a0, simulator):
         """Zeros shaped as the evaluation at `a0` and its least-squares multipliers, for an

@@ -51,11 +51,12 @@ from ._kkt import (
     locally_infeasible,
     merit,
     merit_value,
+    scale_free,
     stationarity,
     with_knot_gaps,
     without_scale,
 )
-from ._sensitivity import Evaluation
+from ._sensitivity import Evaluation, lagrangian_hessian
 from ._solution import History
 from ._status import Status, failed
 
@@ -338,11 +339,16 @@ class LineSearch(eqx.Module):
         )
 
         exact = accept & early & ~done  # (none at the last point)
+
         # (with the exact Hessian, whether the problem sees the parameters' scale: a property of
         # the problem, tested where the raw Hessian is at hand)
+        def exact_hessian(a, cand, lam):
+            W = lagrangian_hessian(problem, control, a, simulator, lam)
+            return sqp.qp_hessian(W, cand.H), scale_free(cand, a, W, lam)
+
         B_acc, free = only_where(
             exact & live,
-            lambda a, cand, lam: sqp._exact_hessian(problem, control, a, simulator, cand, lam),
+            exact_hessian,
             (_bfgs_step(B, step_taken, cand, ev, lam_c) if sqp.hessian == "bfgs" else B, state.scale_free),
             a + step_taken,
             cand,
