@@ -65,10 +65,8 @@ def least_squares_multipliers(ev, path_active):
     ([H; C_a]^T lambda ~ -G_a, nu >= 0 by the rounds of `signed_multipliers`; zero elsewhere):
     started at a converged point, the first active set is the touching one. (One solve with
     the negative nu clipped afterwards is no estimate where neighbouring grid points are
-    nearly dependent: their huge multipliers of opposite signs cancel, and clipping leaves
-    the rest: 6e10 with a residual of 1e10 at a random start of the attitude slew with the
-    cone, against 13 and 0.2 by the rounds; its exact Hessian then sent the line search to a
-    stall.)"""
+    nearly dependent: their huge multipliers of opposite signs cancel in the solve, and
+    clipping leaves the positive halves; benchmarks/RESULTS.md.)"""
     rows = inequality_rows(ev)
     if rows is None:
         return multipliers(ev.H, ev.G_a)
@@ -86,11 +84,12 @@ def scale_free(ev, a, W, lam, tol=1e-8):
     every constraint row flat along `a` (G_a . a = 0, rows a = 0) and the Lagrangian's Hessian
     `W` (multipliers `lam`) with W a = -grad L, the identities of a function homogeneous of
     degree 0 in `a` (a control that enters only as a direction, u / |u|, with every parameter
-    a node of it: orbit raising's thrust). Each is tested relative to its terms (`tol`; 1e-15
-    on orbit raising, 0.06-1 on every other gallery problem; the Hessian's identity rules out
-    a start where G_a . a = 0 by chance). There a model couples the scale to the turn,
-    -beta |g| (1 - alpha) along alpha a - beta g / |g| (the same step turns a smaller control
-    further): steps at a radius shrink the scale, the gradient grows as 1 / |a| and the KKT
+    a node of it: orbit raising's thrust). Each is tested relative to its terms (`tol`, far
+    above round-off and far below what a problem that sees its scale shows:
+    benchmarks/RESULTS.md); the Hessian's identity rules out a point where G_a . a = 0 by
+    chance. There a model couples the scale to the turn, -beta |g| (1 - alpha) along
+    alpha a - beta g / |g| (the same step turns a smaller control further): steps at a
+    radius shrink the scale, the gradient grows as 1 / |a| and the KKT
     test, scaled by max(|a_i|, 1), cannot pass. The SQP steps drop the component along `a`
     there (`without_scale`)."""
     rows = constraint_rows(ev)
