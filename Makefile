@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test check bench clean
+.PHONY: run test test-isa check bench clean
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
@@ -19,6 +19,15 @@ run: $(STAMP)
 # share compiled solvers), at most 4 processes (each can hold a few GB of compiled programs)
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
+
+# another CPU's arithmetic on this one (issue 49): the round-off-sensitive tests with XLA's
+# vectorization capped at SSE4.2 and at AVX2 (FMA use and reduction order change as on
+# another processor)
+ISA_TESTS := tests/test_random_problems.py tests/test_classic.py tests/test_kalman_sqp.py
+test-isa: $(STAMP)
+	for isa in SSE4_2 AVX2; do \
+	  XLA_FLAGS=--xla_cpu_max_isa=$$isa $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile $(ISA_TESTS) || exit 1; \
+	done
 
 # lint, format check, and the documentation site built with --strict (into a throwaway folder)
 check: $(STAMP)

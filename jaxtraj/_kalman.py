@@ -69,8 +69,8 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     the observations of the others turn to closing (a covariance coupling its knots with
     theirs) is then held at its length the same way; the final scaling skips gaps already at
     or below their floor (a collapsed gap a hair below 0 gave a factor of -3e-28: a zero step).
-    A gap at 0 that `da` leaves at 0 (within 1e-14 of the knots' scale) is settled and not
-    observed (the QP's gap rows already hold it).
+    A gap at 0 that `da` leaves at 0 (within 1e-14 of the knots' scale) is settled: not
+    observed (the QP's gap rows already hold it) and not a reason to scale the step.
 
     `knots` `(K + 1,)` and `dknots = dknots/da` `(K + 1, p)` at the current point. Returns
     `(da, P)`.
@@ -100,7 +100,9 @@ def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
     # A gap already at 0 (a collapsed segment, a duration h_k = 0 at its bound) is held there
     # by its observation (z* = 0, variance 0) up to round-off; only a real closing scales the
     # step (else one collapsed segment would freeze every other parameter).
-    real = closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da)
+    # A settled gap does not scale it either: its round-off crossing (the QP's gap row met to
+    # 1e-13) scaled a pendulum's whole step by 3e-17, a zero step that ended the search.
+    real = ~settled & (closing < -1e-12 * jnp.linalg.norm(D, axis=1) * jnp.linalg.norm(da))
     floor = jnp.where(close, 0.0, gaps / (2.0 * a_t))
     limit = jnp.where(
         real & (gaps + closing < floor) & (gaps > floor), (gaps - floor) / jnp.maximum(-closing, 1e-300), 1.0

@@ -53,8 +53,9 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   terminal rows alone fix) make an elastic step: the equalities observed with noise
   (`elastic`), a penalty instead of a hard row. The multipliers lambda = [lambda_E; nu >= 0] of
   all rows enter the Lagrangian and the merit. A fresh direction first releases the
-  multipliers of points that are strictly inactive and outside the QP's active set
-  (`release_inactive`): a leftover nu there makes the merit's slope positive near the optimum.
+  multipliers of points that are strictly inactive (`release_inactive`): a leftover nu there
+  makes the merit's slope positive near the optimum, or its model predict an increase for the
+  step back to the row.
 * One `step` = one candidate integration with first-order sensitivities (and the exact
   Hessian at an accepted point). Work that only some steps need (the Hessian, the start's
   least-squares multipliers, the infeasibility test) runs under `_driver.only_where`: a
@@ -84,9 +85,9 @@ from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
     inequality_rows,
+    kkt_residual,
     least_squares_multipliers,
     multipliers,
-    stationarity,
     with_knot_gaps,
 )
 from ._line_search import LineSearch
@@ -153,6 +154,11 @@ class KalmanSQP(AbstractSolver):
       it is met.
     - `acceptable_gtol`: what SUCCESS guarantees of the projected gradient (relative to
       1 + |G|, 1e-6) when round-off ends the progress before `gtol` is met (module docs).
+    - `acceptable_steps`: a point that stays acceptable (feasible, projected gradient <=
+      `acceptable_gtol`) for this many steps in a row ends the search with SUCCESS (15, as
+      IPOPT's `acceptable_iter`): along a degenerate valley whose steps move only the
+      discretization's error the endgame would otherwise crawl for as long as the last bits
+      of the start and the CPU make it (`_kkt.kkt_outcome`).
     - `a_t`: knot approach ratio of the appendix-C ordering observations (as KalmanSearch).
     - `min_curvature`: relative eigenvalue floor of the convexified exact Hessian.
     - `globalization`: `jt.TrustRegion()` (default; a composite-step trust region with the
@@ -178,6 +184,7 @@ class KalmanSQP(AbstractSolver):
     ctol: float = 1e-10
     gtol: float = 1e-9
     acceptable_gtol: float = 1e-6
+    acceptable_steps: int = 15
     a_t: float = 10.0
     min_curvature: float = 1e-8
     r_rel: float = 1e-12
@@ -215,6 +222,7 @@ class KalmanSQP(AbstractSolver):
             "path_dependence": lambda: 0 < self.path_dependence < 1,
             "elastic": lambda: 0 < self.elastic < 1,
             "exact_iterations": lambda: isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
+            "acceptable_steps": lambda: isinstance(self.acceptable_steps, int) and self.acceptable_steps >= 1,
         }
         check_settings("KalmanSQP", self, checks)
 
@@ -360,18 +368,21 @@ class KalmanSQP(AbstractSolver):
             lam_qp = lam_qp.at[m:].set(jnp.where(active, jnp.maximum(lam_qp[m:], 0.0), 0.0))
         return d, lam_qp
 
-    def release_inactive(self, ev: Evaluation, lam, lam_qp):
+    def release_inactive(self, ev: Evaluation, lam):
         """`lam` with the multipliers of the inequality rows that are strictly inactive (C <
-        -`path_active`) and left out of the QP's active set set to 0 (complementarity). A
-        multiplier kept there from a shortened step ((1 - alpha) of its old value) adds
-        dnu C > 0 to the merit's slope along (d, lambda_qp - lambda); near the optimum that
-        term outweighs -d^T B d and no direction is a descent one (measured on the attitude
-        slew: nu = 9.5e-3 at C = -3.4e-6 made the slope +3.5e-8, STALLED)."""
+        -`path_active`) set to 0 (complementarity at the current point), whether or not the
+        QP's step makes them active again. A multiplier kept there from a shortened step
+        ((1 - alpha) of its old value) adds dnu C > 0 to the merit's slope along (d, lambda_qp -
+        lambda); near the optimum that term outweighs -d^T B d and no direction is a descent
+        one (measured on the attitude slew: nu = 9.5e-3 at C = -3.4e-6 made the slope +3.5e-8,
+        STALLED). One kept on a row that the last step over-satisfied (a minimum time whose
+        reach row ended at C = -0.125 with nu = 1.16) made the merit's model predict an
+        increase for the QP's step back to the row: STALLED at tf = 1.5 (sqrt(2) optimal)."""
         rows = inequality_rows(ev)
         if rows is None:
             return lam
         m = ev.E.shape[0]
-        stale = (lam_qp[m:] == 0.0) & (rows[0] < -self.path_active)
+        stale = rows[0] < -self.path_active
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
 
     def _equality_step(self, prior, P, ev, r, refine=True):
@@ -427,7 +438,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
-            projected_gradient=stationarity(with_knot_gaps(control, state.ev, state.a), state.a, self.path_active),
+            projected_gradient=kkt_residual(with_knot_gaps(control, state.ev, state.a), state.a, self.path_active),
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -137,15 +137,22 @@ def is_feasible(ev, ctol):
     return ok if rows is None else ok & (jnp.max(rows[0]) <= ctol)
 
 
-def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress):
-    """`(converged, stalled)` of an SQP iteration: converged when `feasible` and the projected
-    gradient `pg` <= `gtol` (1 + |G|), or, once `no_progress` (round-off leaves no measurable
-    progress), <= `acceptable_gtol` (1 + |G|); stalled when progress ended short of that. The
-    second level keeps the outcome off the knife edge where the projected gradient's
-    round-off floor (set by the sensitivities) meets `gtol`."""
+def kkt_outcome(feasible, pg, G, gtol, acceptable_gtol, no_progress, streak, acceptable_steps):
+    """`(converged, stalled, streak)` of an SQP iteration: converged when `feasible` and the
+    projected gradient `pg` <= `gtol` (1 + |G|), or when the point is acceptable (feasible,
+    `pg` <= `acceptable_gtol` (1 + |G|)) and either `no_progress` (round-off leaves no
+    measurable progress) or it has been acceptable for `acceptable_steps` steps in a row
+    (`streak`, returned updated: IPOPT's `acceptable_iter` rule); stalled when progress ended
+    short of that. The second level keeps the outcome off the knife edge where the projected
+    gradient's round-off floor (set by the sensitivities) meets `gtol`; the streak bounds an
+    endgame that moves only the discretization's error along a degenerate valley (equal
+    control arcs split among several pieces), whose length would otherwise follow the last
+    bits of the start and the CPU (issue 49)."""
     scale = 1.0 + jnp.abs(G)
-    converged = feasible & ((pg <= gtol * scale) | (no_progress & (pg <= acceptable_gtol * scale)))
-    return converged, ~converged & no_progress
+    acceptable = feasible & (pg <= acceptable_gtol * scale)
+    streak = jnp.where(acceptable, streak + 1, 0).astype(jnp.int32)
+    converged = (feasible & (pg <= gtol * scale)) | (acceptable & (no_progress | (streak >= acceptable_steps)))
+    return converged, ~converged & no_progress, streak
 
 
 def parameter_scale(a):
@@ -170,6 +177,21 @@ def stationarity(ev, a, tol):
     the distance from stationarity: a row that the gradient pulls the point away from (a
     negative multiplier) does not count as holding the point."""
     return stationarity_multipliers(ev, a, tol)[0]
+
+
+def kkt_residual(ev, a, tol):
+    """`stationarity`, or the complementarity max_i nu_i max(-C_i, 0) of its multipliers if
+    larger: KalmanSQP's SUCCESS test. A row within `tol` of its bound counts as active, and
+    with the stationarity residual alone a point that left such a row 1e-7 inside was
+    stationary: a vertex optimum (a minimum time with |u| <= 1 and a reach inequality) ended
+    SUCCESS 2e-7 from it. nu_i |C_i| bounds what the row still costs the objective (the
+    duality gap of a convex problem), in the objective's units as the stationarity test."""
+    residual, lam = stationarity_multipliers(ev, a, tol)
+    rows = inequality_rows(ev)
+    if rows is None:
+        return residual
+    nu = lam[ev.E.shape[0] :]
+    return jnp.maximum(residual, jnp.max(nu * jnp.maximum(-rows[0], 0.0), initial=0.0))
 
 
 def stationarity_multipliers(ev, a, tol):

@@ -46,13 +46,13 @@ from ._kkt import (
     inequality_rows,
     is_feasible,
     kkt_outcome,
+    kkt_residual,
     lagrangian_gradient,
     least_squares_multipliers,
     locally_infeasible,
     merit,
     merit_value,
     scale_free,
-    stationarity,
     with_knot_gaps,
     without_scale,
 )
@@ -106,6 +106,7 @@ class LineSearchState(eqx.Module):
     radius: jax.Array  # step cap |d|_inf
     num_flat: jax.Array  # accepted steps in a row within the merit's round-off (see `step`)
     best_gradient: jax.Array  # the smallest projected gradient at an accepted point
+    streak: jax.Array  # steps in a row at an acceptable point (`_kkt.kkt_outcome`)
     scale_free: jax.Array  # the problem cannot see the parameters' scale (`_kkt.scale_free`)
     num_iterations: jax.Array
     num_integrations: jax.Array
@@ -212,6 +213,7 @@ class LineSearch(eqx.Module):
             radius=jnp.asarray(self.radius, f),
             num_flat=jnp.array(0, jnp.int32),
             best_gradient=jnp.asarray(jnp.inf, f),
+            streak=jnp.array(0, jnp.int32),
             scale_free=jnp.array(False),
             num_iterations=jnp.array(0, jnp.int32),
             num_integrations=jnp.array(0, jnp.int32),
@@ -233,7 +235,7 @@ class LineSearch(eqx.Module):
             d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
             # the penalty carries over unless it ran past `mu_max` (see the module docs)
             mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
-            base = sqp.release_inactive(ev, lam, lam_qp)
+            base = sqp.release_inactive(ev, lam)
             return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
 
         # A fresh direction (no integration) unless a search is pending; if B's step is no
@@ -311,7 +313,7 @@ class LineSearch(eqx.Module):
         new_lam = jnp.where(accept, lam_c, lam)
         maxE = jnp.max(jnp.abs(new_ev.E), initial=0.0)
         kkt_ev = with_knot_gaps(control, new_ev, new_a)
-        pg = stationarity(kkt_ev, new_a, sqp.path_active)
+        pg = kkt_residual(kkt_ev, new_a, sqp.path_active)
         feasible = is_feasible(new_ev, sqp.ctol)
         # No measurable progress is left: the line search failed, the direction is no
         # descent, the step is negligible, or `flat_steps` steps in a row were accepted only
@@ -326,7 +328,9 @@ class LineSearch(eqx.Module):
             | (accept & negligible)
             | (flat >= self.flat_steps)
         )
-        converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
+        converged, stalled, streak = kkt_outcome(
+            feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress, state.streak, sqp.acceptable_steps
+        )
         bad_start = first & ~accept
         done = converged | stalled | bad_start
         infeasible = stalled & ~feasible  # tested only there (least squares over every row)
@@ -386,6 +390,7 @@ class LineSearch(eqx.Module):
             ),
             num_flat=flat.astype(jnp.int32),
             best_gradient=jnp.where(accept & improved, pg, state.best_gradient),
+            streak=streak,
             scale_free=free,
             num_iterations=state.num_iterations + (accept & ~first).astype(jnp.int32),
             num_integrations=state.num_integrations + 1 + exact.astype(jnp.int32),

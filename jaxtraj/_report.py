@@ -50,15 +50,29 @@ class KKTReport(eqx.Module):
         """Whether the point is a first-order KKT point within the tolerances: the status is
         SUCCESS, `max_violation` <= `ctol` and `stationarity` <= `gtol` (1 + |G|) (KalmanSQP's
         SUCCESS rule with its `acceptable_gtol`)."""
-        return bool(
-            (self.status == Status.SUCCESS)
-            & (self.max_violation <= ctol)
-            & (self.stationarity <= gtol * (1.0 + jnp.abs(self.objective)))
-        )
+        return not self.failures(ctol, gtol)
+
+    def failures(self, ctol: float = 1e-8, gtol: float = 1e-6) -> list[str]:
+        """What keeps the point from `satisfied(ctol, gtol)`, one phrase each (empty if it is)."""
+        for name, value in (("ctol", ctol), ("gtol", gtol)):
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise ValueError(f"KKTReport: `{name}` must be a number > 0; got {value!r}.")
+        out = []
+        if self.status != Status.SUCCESS:
+            out.append(f"evaluation {status_name(self.status)}")
+        if not self.max_violation <= ctol:
+            out.append(f"max violation {float(self.max_violation):.2e} > ctol {ctol:.0e}")
+        limit = gtol * (1.0 + abs(float(self.objective)))
+        if not self.stationarity <= limit:
+            out.append(f"stationarity {float(self.stationarity):.2e} > gtol (1 + |G|) = {limit:.2e}")
+        return out
 
     def __str__(self):
+        # the report's own verdict at the default tolerances (not the evaluation's status)
+        failures = self.failures()
+        verdict = "KKT point (ctol 1e-8, gtol 1e-6)" if not failures else "NOT a KKT point: " + "; ".join(failures)
         lines = [
-            f"KKT report ({status_name(self.status)}): objective {float(self.objective):.10g}, "
+            f"KKT report, {verdict}\n  objective {float(self.objective):.10g}, "
             f"stationarity {float(self.stationarity):.2e}, complementarity {float(self.complementarity):.2e}, "
             f"max violation {float(self.max_violation):.2e}"
         ]

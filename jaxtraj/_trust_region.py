@@ -99,12 +99,12 @@ from ._kkt import (
     inequality_rows,
     is_feasible,
     kkt_outcome,
+    kkt_residual,
     least_squares_multipliers,
     locally_infeasible,
     merit,
     merit_value,
     scale_free,
-    stationarity,
     with_knot_gaps,
     without_scale,
 )
@@ -313,6 +313,7 @@ class TRState(eqx.Module):
     radius: jax.Array
     mu: jax.Array  # merit penalty
     cap_ref: jax.Array  # the violation where the penalty was last capped (`TrustRegion.mu_max`)
+    streak: jax.Array  # steps in a row at an acceptable point (`_kkt.kkt_outcome`)
     d: jax.Array  # the step of the pending second-order correction
     d_soc: jax.Array
     lam_qp: jax.Array  # the QP's multipliers of the pending step (problems with inequalities)
@@ -379,6 +380,7 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
         radius=jnp.asarray(tr.radius, f),
         mu=jnp.asarray(0.0, f),
         cap_ref=jnp.asarray(jnp.inf, f),
+        streak=jnp.array(0, jnp.int32),
         d=zero,
         d_soc=zero,
         lam_qp=lam,
@@ -420,7 +422,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
 
         d, lam_qp = only_where(fresh & live, new_step, (state.d, state.lam_qp), ev, B, state.lam, state.radius, gaps)
         newton = jnp.asarray(jnp.inf, a.dtype)  # (the QP's own minimizer is not formed)
-        lam = sqp.release_inactive(ev, state.lam, lam_qp)
+        lam = sqp.release_inactive(ev, state.lam)
         size = lambda d: jnp.max(jnp.abs(d))
     else:
         B = W
@@ -507,7 +509,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # inequalities it is rounds of least squares over every near-active or violated row
     pg = only_where(
         feasible & live,
-        lambda ev, a: stationarity(ev, a, sqp.path_active),
+        lambda ev, a: kkt_residual(ev, a, sqp.path_active),
         jnp.asarray(jnp.inf, a.dtype),
         kkt_ev,
         new_a,
@@ -519,7 +521,9 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     # that lowers a violation of 1e-9 still counts, though the merit cannot resolve it.)
     flat = fresh & (size(d) < 0.8 * state.radius) & (pred <= slack) & is_feasible(ev, sqp.ctol)
     no_progress = ~first & (~(radius > tiny) | (accept & (jnp.linalg.norm(total) <= tiny)) | flat)
-    converged, stalled = kkt_outcome(feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress)
+    converged, stalled, streak = kkt_outcome(
+        feasible, pg, new_ev.G, sqp.gtol, sqp.acceptable_gtol, no_progress, state.streak, sqp.acceptable_steps
+    )
     bad_start = first & ~accept
     infeasible = stalled & ~feasible  # tested only there (least squares over every row)
     infeasible = only_where(
@@ -552,6 +556,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         radius=radius,
         mu=mu,
         cap_ref=jnp.where(cap, viol, state.cap_ref),
+        streak=streak,
         d=d,
         d_soc=jnp.where(jnp.all(jnp.isfinite(d_soc)), d_soc, 0.0),
         lam_qp=lam_qp,

@@ -253,10 +253,13 @@ def test_penalty_cap_waits_for_the_violation_to_halve_on_a_pendulum_min_time():
     between equal levels have variance 1e8 in B's metric). E's rows now take part in the
     refinement pass (`inequality_step`): SUCCESS from every perturbation too, within 1e-5 of
     IPOPT's objective (neighbouring local optima: the same arcs split differently among the
-    pieces, so RK4's error differs by ~3e-6); never the cycle again. The iteration count is
-    not asserted: with a collapsed segment and two arcs each split between two pieces the
-    endgame is degenerate (a switch between equal arcs moves only RK4's error) and its length
-    follows round-off: 17-452 iterations over the start and 8 perturbations (IPOPT 419)."""
+    pieces, so RK4's error differs by ~3e-6); never the cycle again. On an AVX-512 machine
+    (issue 49) the naive start still crawled: MAX_ITERATIONS, a degenerate endgame (a switch
+    between equal arcs moves only RK4's error) at an acceptable point for hundreds of steps;
+    it now ends after `acceptable_steps` acceptable steps in a row (86 iterations there, at
+    IPOPT's optimum), and the 1e-10 perturbation no longer STALLED at an infeasible point
+    (a settled collapsed gap scaled its steps to 1e-19: `keep_knots_ordered`). Iteration
+    counts are not asserted: 65-337 over the starts and ISA settings (IPOPT 419)."""
     prob, ctrl, a0 = _unseen_problem("pendulum-min-time")
     ipopt = solve_ipopt(prob, ctrl, a0, simulator=SIM)
     assert ipopt.success
@@ -290,7 +293,8 @@ def test_collapsed_durations_count_in_the_trust_regions_kkt_test():
         sol = jt.solve(prob, ctrl, start, simulator=SIM, max_steps=1000)
         assert jt.status_name(sol.status) == "SUCCESS"
         assert abs(float(sol.objective) - np.sqrt(68.0)) <= 1e-8
-        assert np.sum(np.asarray(sol.params)[:8] < 1e-12) >= 2  # two durations collapsed
+        # two durations collapsed (to 3.6e-12 where `acceptable_steps` ends the endgame)
+        assert np.sum(np.asarray(sol.params)[:8] < 1e-10) >= 2
 
 
 def test_control_values_put_back_on_their_bounds_end_a_round_off_tail():

@@ -128,6 +128,20 @@ def test_keep_knots_ordered_closes_a_gap_within_collapse():
         assert float(np.diff(np.asarray(knots + dknots @ d0))[1]) >= 1e-8 / 20 * (1 - 1e-9)
 
 
+def test_keep_knots_ordered_does_not_scale_a_step_for_a_settled_gap():
+    """A collapsed segment (gap 3.5e-30, held by the QP's gap row) that the step crosses by
+    its round-off (1.25e-13, within 1e-14 of the knots' scale): settled, so the step is left
+    as it is. It used to scale the whole step by (gap - floor) / 1.25e-13 = 2.5e-17: a zero
+    step that ended a pendulum's minimum time STALLED at an infeasible point."""
+    from jaxtraj._kalman import keep_knots_ordered
+
+    knots = jnp.array([0.0, 3.5e-30, 12.69])
+    dknots = jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    da = jnp.array([-1.25e-13, 7.2e-3])
+    d, _ = keep_knots_ordered(da, jnp.eye(2), knots, dknots, 10.0, collapse=1e-6)
+    np.testing.assert_allclose(d, da, rtol=0, atol=1e-15)
+
+
 def test_keep_knots_ordered_holds_a_collapsed_gap_that_another_gap_turns_to_closing():
     """A collapsed gap (t2 - t1 = -1e-17, round-off below 0) that the step opens, and a gap
     the step closes whose observation, through a covariance coupling t2 with t3, turns the

@@ -222,7 +222,7 @@ def test_merit_slope_where_a_zero_multiplier_rises():
     def start(state):
         d, lam_qp = solver.direction(ev, state.B, state.lam, ctrl.knots(a), jax.jacfwd(ctrl.knots)(a), state.radius)
         d = d * jnp.minimum(1.0, state.radius / jnp.max(jnp.abs(d)))  # the line search's cap
-        base = solver.release_inactive(ev, state.lam, lam_qp)
+        base = solver.release_inactive(ev, state.lam)
         return (d, base, *solver.globalization.start(solver, ev, base, state.mu, state.B, d, lam_qp))
 
     d, base, dlam, mu, phi0, slope = start(state)
@@ -557,22 +557,29 @@ def test_bad_globalization_settings(make):
 
 
 def test_kkt_outcome_levels():
-    """SUCCESS at `gtol` any time; between `gtol` and `acceptable_gtol` only once no progress
-    is left (else the search goes on); never when infeasible or above `acceptable_gtol`."""
-    G, gtol, acceptable = 2.0, 1e-9, 1e-6  # tolerances scale with 1 + |G| = 3
-    rows = [  # feasible, pg, no_progress -> converged, stalled
-        (True, 2e-9, False, True, False),
-        (True, 2e-9, True, True, False),
-        (True, 4e-9, False, False, False),
-        (True, 4e-9, True, True, False),
-        (True, 2.9e-6, True, True, False),
-        (True, 3.1e-6, True, False, True),
-        (False, 1e-12, True, False, True),
-        (False, 1e-12, False, False, False),
+    """SUCCESS at `gtol` any time; between `gtol` and `acceptable_gtol` once no progress is
+    left or after `acceptable_steps` acceptable steps in a row (else the search goes on);
+    never when infeasible or above `acceptable_gtol`, and a step that is not acceptable
+    restarts the count."""
+    G, gtol, acceptable, steps = 2.0, 1e-9, 1e-6, 3  # tolerances scale with 1 + |G| = 3
+    rows = [  # feasible, pg, no_progress, streak before -> converged, stalled, streak after
+        (True, 2e-9, False, 0, True, False, 1),
+        (True, 2e-9, True, 0, True, False, 1),
+        (True, 4e-9, False, 0, False, False, 1),
+        (True, 4e-9, False, 1, False, False, 2),
+        (True, 4e-9, False, 2, True, False, 3),
+        (True, 4e-9, True, 0, True, False, 1),
+        (True, 2.9e-6, True, 0, True, False, 1),
+        (True, 3.1e-6, True, 0, False, True, 0),
+        (True, 3.1e-6, False, 2, False, False, 0),
+        (False, 1e-12, True, 0, False, True, 0),
+        (False, 1e-12, False, 2, False, False, 0),
     ]
-    for feasible, pg, no_progress, converged, stalled in rows:
-        got = kkt_outcome(jnp.array(feasible), jnp.array(pg), jnp.array(G), gtol, acceptable, jnp.array(no_progress))
-        assert (bool(got[0]), bool(got[1])) == (converged, stalled), (feasible, pg, no_progress)
+    for feasible, pg, no_progress, before, converged, stalled, after in rows:
+        got = kkt_outcome(
+            jnp.array(feasible), jnp.array(pg), jnp.array(G), gtol, acceptable, jnp.array(no_progress), before, steps
+        )
+        assert (bool(got[0]), bool(got[1]), int(got[2])) == (converged, stalled, after), (feasible, pg, no_progress)
 
 
 def test_trust_region_batch_equals_single_solves():

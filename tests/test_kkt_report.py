@@ -124,3 +124,28 @@ def test_start_multipliers_with_nearly_dependent_rows(seed):
     # from above, measured within 1 % of it here
     assert res <= 1.05 * best + 1e-9, (res, best)
     assert np.max(np.abs(lam)) <= 10.0 * (1.0 + np.max(np.abs(ref.x))), (lam, ref.x)
+
+
+def test_report_prints_its_own_verdict():
+    """Issue 49: at a point that is not a KKT point the table was headed "KKT report
+    (SUCCESS)" (the evaluation's status). A minimum time with |u| <= 1 that must reach x >= 1
+    (x'' = u): at u = 1, tf = 1.5 the reach row is inactive and nothing balances d tf (the
+    stationarity residual is |D e_tf| = 1.5); at tf = sqrt(2) the reach and the bound hold it."""
+    prob = jt.Problem(
+        lambda t, x, u, args: jnp.array([x[1], u[0]]),
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )
+    ctrl = jt.controls.PiecewiseConstant(1)
+    report = jt.kkt_report(prob, ctrl, jnp.array([1.0, 1.5]))
+    assert not report.satisfied() and float(report.stationarity) == pytest.approx(1.5, rel=1e-9)
+    assert str(report).startswith("KKT report, NOT a KKT point: stationarity 1.50e+00 > gtol")
+    optimum = jt.kkt_report(prob, ctrl, jnp.array([1.0, np.sqrt(2.0)]))
+    assert optimum.satisfied() and str(optimum).startswith("KKT report, KKT point")
+    with pytest.raises(ValueError, match="ctol"):
+        optimum.satisfied(ctol="x")

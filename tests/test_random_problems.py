@@ -1,0 +1,101 @@
+"""The solvers against an independent oracle on random problems (benchmarks/fuzz.py): linear
+dynamics with a quadratic cost and linear constraints, whose restricted problem on the RK4
+grid is a convex QP solved by Clarabel (cvxpy). A convex QP has one optimal value, so a
+SUCCESS anywhere else is a false SUCCESS; and a textbook minimum-time problem whose optimum
+has as many active rows as parameters."""
+
+import functools
+import importlib.util
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+from helpers import LINE_SEARCH, TRUST_REGION, perturbed_starts
+
+import jaxtraj as jt
+
+
+@functools.cache
+def _fuzz():
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "fuzz.py"
+    spec = importlib.util.spec_from_file_location("fuzz", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_oracle_affine_map_is_rk4_and_converges_to_the_matrix_exponential():
+    """The oracle's x(tf) = M a + c: with many RK4 steps it tends to the exact solution of the
+    linear system (scipy's matrix exponential, segment by segment), with RK4's h^4 rate; and on
+    the solver's grid it equals jaxtraj's own evaluation (the two share only the dynamics)."""
+    fuzz = _fuzz()
+    rp = fuzz.make(3, n=3, m=2, K=3)
+    A, B, x0 = rp.args["A"], rp.args["B"], rp.args["x0"]
+    a = np.random.default_rng(0).standard_normal(rp.K * rp.m)
+    h = rp.T / rp.K
+    x = x0.copy()
+    for k in range(rp.K):  # exact: x+ = e^{hA} x + A^-1 (e^{hA} - I) B u
+        eA = scipy.linalg.expm(h * A)
+        x = eA @ x + np.linalg.solve(A, (eA - np.eye(3)) @ B @ a[k * 2 : k * 2 + 2])
+    errors = []
+    for steps in (8, 16):
+        M, c = fuzz.rk4_affine(A, B, x0, rp.T, rp.K, rp.m, steps)
+        errors.append(np.max(np.abs(M @ a + c - x)))
+    assert errors[1] < 1e-6 and 12.0 < errors[0] / errors[1] < 20.0  # fourth order
+    ev = jt.evaluate(rp.problem, rp.control, jnp.asarray(a), simulator=jt.RK4(fuzz.STEPS))
+    np.testing.assert_allclose(float(ev.G), rp.objective(a), rtol=1e-12)
+
+
+# Three size classes (a compiled solver is shared by the problems of one class and one
+# constraint layout); seeds fixed. benchmarks/fuzz.py --n 1000 runs every size.
+CASES = [(seed, 2, 1, 3) for seed in range(4)] + [(seed, 3, 2, 4) for seed in range(4, 8)]
+CASES += [(seed, 5, 3, 3) for seed in range(8, 10)]
+
+
+@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
+def test_solvers_reach_the_oracle_optimum_of_random_problems(solver):
+    """From zeros and from a random start inside the bounds: SUCCESS at the QP's optimal value
+    (1e-8 relative) with every constraint met (1e-8), on every problem of the sample."""
+    fuzz = _fuzz()
+    outcomes = []
+    for seed, n, m, K in CASES:
+        rp = fuzz.make(seed, n, m, K)
+        reference, _ = rp.oracle()
+        for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items():
+            outcome, its, err = fuzz.check(rp, solver, a0, reference)
+            outcomes.append((seed, kind, outcome, its, err))
+    assert all(o[2] == "ok" for o in outcomes), [o for o in outcomes if o[2] != "ok"]
+
+
+def _reach_problem():
+    """x'' = u, x(0) = v(0) = 0, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), v free,
+    least tf: u = 1 throughout, tf* = sqrt(2) (closed form); the optimum has as many active
+    rows (the reach and the upper bounds) as parameters."""
+    return jt.Problem(
+        lambda t, x, u, args: jnp.array([x[1], u[0]]),
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )
+
+
+@pytest.mark.parametrize("segments", [1, 2, 3])
+@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
+def test_minimum_time_reach_with_a_terminal_inequality_at_a_vertex(segments, solver):
+    """Issue 49's textbook case: the default STALLED after 2 iterations at tf = 1.5 (the
+    merit kept the multiplier of the reach row, strictly inactive at the new point, and
+    predicted an increase for the step towards it); the line search at 1.41444. Now SUCCESS
+    at sqrt(2) from both starts of the issue and their round-off perturbations."""
+    prob = _reach_problem()
+    ctrl = jt.controls.PiecewiseConstant(segments)
+    for u in (0.5, 0.0):
+        for a0 in perturbed_starts(ctrl.initial_guess(2.0, u, u), absolute=True):
+            sol = jt.solve(prob, ctrl, a0, solver=solver)
+            assert jt.status_name(sol.status) == "SUCCESS", (u, a0)
+            assert abs(float(sol.tf) - np.sqrt(2.0)) <= 1e-8 * np.sqrt(2.0), (u, float(sol.tf))
