@@ -304,11 +304,24 @@ class KalmanSQP(AbstractSolver):
             # violation, which `locally_infeasible` recognizes) instead of hard rows. The step
             # honours every inequality and meets E as far as they allow (the filter's form of
             # an l2 elastic / feasibility-restoration step). There the QP's Hessian is
-            # B + H^T R^-1 H (R the equalities' noise) and it has no equality rows.
+            # B + H^T R^-1 H (R the equalities' noise) and it has no equality rows. If the
+            # inequalities are inconsistent by themselves (that step is too: a reach x(tf) >= 1
+            # that no bounded control meets at the current tf; with no E to soften, the hard
+            # QP's step went past its bounds, multipliers 1e97, STALLED; issue 49), a third
+            # round also softens the path and terminal inequality rows violated now (C >
+            # `ctol`), observed at their boundary with one noise for all softened rows (a
+            # penalty on (C + C_a d)^2), while the bounds on the parameters, the step's box and
+            # the knot gaps stay hard; its Hessian is B + A^T R^-1 A over all softened rows.
             pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
             B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
+            n_bounds = 0 if ev.V is None else ev.V.shape[0]
+            softened = (jnp.arange(C.shape[0]) < n_rows - n_bounds) & (C > self.ctol)
+            noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var, 0.0)))
+            noise = noise / jnp.maximum(m + jnp.sum(softened), 1) + 1e-300
+            soft_rows = jnp.where(softened[:, None], C_a, 0.0)
+            B_softer = B + (ev.H.T @ ev.H + soft_rows.T @ soft_rows) / noise
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`,
             # or the final step (its working rows refiltered) leaves a problem's row past 100
@@ -324,19 +337,23 @@ class KalmanSQP(AbstractSolver):
             # round-off at a degenerate vertex alone (a unicycle with every control on its
             # bound: past `ctol` by round-off, and an elastic step there stalled; a pendulum's
             # minimum time needs the rows' final excess counted).
-            # The hard step, then (only if it is needed) the elastic one: rounds of one loop,
+            # The hard step, then (only if it is needed) the elastic one, then (only if that is
+            # inconsistent too) the one with the violated inequalities softened: rounds of one loop,
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
             def round_(carry):
                 k, _ = carry
-                elastic = k == 1
-                d_eq, P_eq = self._equality_step(prior, P, ev, jnp.where(elastic, r_soft, r), refine=~elastic)
+                elastic, softer = k >= 1, k == 2
+                r_eq = jnp.where(softer, noise, jnp.where(elastic, r_soft, r))
+                d_eq, P_eq = self._equality_step(prior, P, ev, r_eq, refine=~elastic)
+                soft = softer & softened
+                d_eq, P_eq, _ = sequential_update(d_eq, P_eq, C_a, -C, jnp.full_like(C, noise), active=soft)
                 d, P2, active, _, excess = inequality_step(
                     d_eq,
                     P_eq,
-                    jnp.where(elastic, B_soft, B),
+                    jnp.where(softer, B_softer, jnp.where(elastic, B_soft, B)),
                     jnp.where(elastic, 0.0, ev.H),
-                    C,
+                    jnp.where(soft, -jnp.inf, C),  # (a softened row is no hard row)
                     C_a,
                     r_c,
                     prior_var,
@@ -356,7 +373,7 @@ class KalmanSQP(AbstractSolver):
 
             def again(carry):
                 k, (*_, inconsistent) = carry
-                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent))
+                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent)) | ((k == 2) & inconsistent)
 
             unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False))
             _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
@@ -369,20 +386,22 @@ class KalmanSQP(AbstractSolver):
         return d, lam_qp
 
     def release_inactive(self, ev: Evaluation, lam):
-        """`lam` with the multipliers of the inequality rows that are strictly inactive (C <
-        -`path_active`) set to 0 (complementarity at the current point), whether or not the
-        QP's step makes them active again. A multiplier kept there from a shortened step
+        """`lam` with the multipliers of the inequality rows that are inactive by more than
+        `ctol` (C < -`ctol`) set to 0 (complementarity at the current point), whether or not
+        the QP's step makes them active again. A multiplier kept there from a shortened step
         ((1 - alpha) of its old value) adds dnu C > 0 to the merit's slope along (d, lambda_qp -
         lambda); near the optimum that term outweighs -d^T B d and no direction is a descent
         one (measured on the attitude slew: nu = 9.5e-3 at C = -3.4e-6 made the slope +3.5e-8,
         STALLED). One kept on a row that the last step over-satisfied (a minimum time whose
         reach row ended at C = -0.125 with nu = 1.16) made the merit's model predict an
-        increase for the QP's step back to the row: STALLED at tf = 1.5 (sqrt(2) optimal)."""
+        increase for the QP's step back to the row: STALLED at tf = 1.5 (sqrt(2) optimal); one
+        kept on a row 2.5e-7 inside its bound made the step to the vertex merit-neutral (its
+        objective gain nu |C| cancelled by the nu C term), STALLED 1.7e-7 above the optimum."""
         rows = inequality_rows(ev)
         if rows is None:
             return lam
         m = ev.E.shape[0]
-        stale = rows[0] < -self.path_active
+        stale = rows[0] < -self.ctol
         return lam.at[m:].set(jnp.where(stale, 0.0, lam[m:]))
 
     def _equality_step(self, prior, P, ev, r, refine=True):

@@ -151,17 +151,21 @@ class LineSearch(eqx.Module):
         C, Cd = (None, None) if rows is None else (rows[0], rows[1] @ d)
         Gd, Hd = ev.G_a @ d, ev.H @ d
 
-        def slope(mu):
+        def slope(mu, raising=False):
             # d/dalpha of the merit of the linearized constraints along (d, dlam), one-sided
             # (alpha -> 0+): a row takes the PHR branch nu C + mu/2 C^2 where nu + mu C > 0,
             # or = 0 and growing along the step. At mu = 0 a row whose multiplier is 0 and
             # rises (a violated row entering the QP's active set) adds dnu C; the two-sided
             # rule missed it (Bryson-Denham from random starts: slope -24 against +87 by
-            # finite differences, so no step length was accepted).
+            # finite differences, so no step length was accepted). `raising`: the branch of
+            # mu -> 0+ instead, for the penalty's Newton steps: a violated row with nu = 0 is
+            # on for every mu > 0, so its C C_a d lowers the slope as mu grows; at mu = 0 it
+            # was off, the slope flat in mu, and the penalty never left 0 (an elastic step
+            # whose softened reach row had no multiplier: STALLED, issue 49).
             on = None
             if C is not None:
                 s, ds = lam[m:] + mu * C, dlam[m:] + mu * Cd
-                on = (s > 0) | ((s == 0) & (ds > 0))
+                on = (s > 0) | ((s == 0) & ((ds > 0) | (raising & (C > 0))))
 
             def phi(alpha):
                 C_alpha = None if C is None else C + alpha * Cd
@@ -181,7 +185,7 @@ class LineSearch(eqx.Module):
             infeasible = infeasible | (jnp.max(C) > sqp.ctol)
 
         def raise_mu(_, mu):
-            value, c1 = jax.jvp(slope, (mu,), (jnp.ones_like(mu),))
+            value, c1 = jax.jvp(lambda mu: slope(mu, raising=True), (mu,), (jnp.ones_like(mu),))
             needed = mu + (value - target) / jnp.where(c1 < 0, -c1, 1.0)
             return jnp.where((value > target) & (c1 < 0) & infeasible, jnp.maximum(2.0 * needed, mu), mu)
 

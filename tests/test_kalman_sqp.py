@@ -14,9 +14,9 @@ import jaxtraj as jt
 from jaxtraj._bounds import knot_gap_rows
 from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
-from jaxtraj._kkt import active_rows, constraint_rows, kkt_outcome, lagrangian_gradient, merit
+from jaxtraj._kkt import active_rows, constraint_rows, kkt_outcome, lagrangian_gradient, merit, merit_value
 from jaxtraj._line_search import bfgs_update
-from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
+from jaxtraj._sensitivity import Evaluation, evaluate_restricted, lagrangian_hessian
 from jaxtraj._trust_region import (
     _curvature_floor,
     convexify_blockwise,
@@ -201,38 +201,42 @@ def test_merit_slope_matches_finite_differences_and_is_a_descent():
 
 
 def test_merit_slope_where_a_zero_multiplier_rises():
-    """The slope's kink: at penalty 0 a path row's term is max(nu, 0) C, and a step that
-    raises a zero multiplier on a violated row adds dnu C > 0 (one-sided). Bryson-Denham
-    from an infeasible random start (x <= 1/9 violated on the grid), at the iterate after
-    its first step with penalty 0 (the state the start's clipped least-squares multipliers
-    led to before session 32; set here, the slope must hold at any): the line search's slope,
-    the penalty left at 0, against a forward difference of real evaluations (before the fix:
-    -24 against +87, no step length accepted, STALLED), and a descent one."""
-    entry = jt.problems.classic.get("bryson-denham")
-    prob, ctrl, sim = entry.problem, entry.control, jt.RK4(40)
-    a0 = jt.random_starts(prob, ctrl, jax.random.key(0), 32, entry.start, 0.5, simulator=sim)[4]
-    solver = LINE_SEARCH
-    step = eqx.filter_jit(lambda s: solver.step(prob, ctrl, sim, s))
-    state = step(step(init_state(solver, prob, ctrl, a0, sim, 10)))  # the start, one accepted step
-    state = eqx.tree_at(lambda s: s.mu, state, jnp.zeros_like(state.mu))
-    ev, a, m = state.ev, state.a, state.ev.E.shape[0]
-    assert bool(state.history.accepted[1]) and float(jnp.max(ev.C)) > 0.1
-
-    @eqx.filter_jit  # one program (eagerly, the QP dispatches op by op)
-    def start(state):
-        d, lam_qp = solver.direction(ev, state.B, state.lam, ctrl.knots(a), jax.jacfwd(ctrl.knots)(a), state.radius)
-        d = d * jnp.minimum(1.0, state.radius / jnp.max(jnp.abs(d)))  # the line search's cap
-        base = solver.release_inactive(ev, state.lam)
-        return (d, base, *solver.globalization.start(solver, ev, base, state.mu, state.B, d, lam_qp))
-
-    d, base, dlam, mu, phi0, slope = start(state)
-    assert float(mu) == 0.0 and bool(jnp.any((base[m:] == 0) & (dlam[m:] > 0) & (ev.C.reshape(-1) > 0)))  # the kink
-    phi = jax.jit(lambda t: merit(evaluate_restricted(prob, ctrl, a + t * d, sim), base + t * dlam, mu))
+    """The slope's kink: at penalty 0 an inequality row's term is max(nu, 0) C, and a step
+    that raises a zero multiplier on a violated row adds dnu C > 0 (one-sided). Measured on
+    Bryson-Denham from random starts (a violated path row entering the QP's active set):
+    slope -24 against +87 by finite differences, no step length accepted, STALLED. Since the
+    QP softens rows that are inconsistent by themselves (issue 49) those starts no longer
+    reach the kink with penalty 0, so it is set up here: a linear evaluation (two equalities,
+    three inequality rows, the first violated with multiplier 0 rising to 2 along the step)
+    and a strong descent that keeps the penalty at 0. The line search's slope against a
+    one-sided forward difference of the merit along (d, dlam), and against the two-sided rule
+    (which misses dnu C)."""
+    rng = np.random.default_rng(3)
+    n = 5
+    g, H, C_a = rng.normal(size=n), rng.normal(size=(2, n)), rng.normal(size=(3, n))
+    E, C = 1e-3 * rng.normal(size=2), np.array([0.3, -0.5, -0.2])
+    ev = Evaluation(
+        xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(g), E=jnp.asarray(E), H=jnp.asarray(H), status=None,
+        D=jnp.asarray(C), D_a=jnp.asarray(C_a),
+    )  # fmt: skip
+    d = -g / np.linalg.norm(g)  # a descent direction: G_a d = -|g|
+    lam = jnp.zeros(5)
+    lam_qp = jnp.array([0.1, -0.1, 2.0, 0.0, 0.0])
+    B = 1e-3 * jnp.eye(n)
+    dlam, mu, phi0, slope = LINE_SEARCH.globalization.start(LINE_SEARCH, ev, lam, 0.0, B, jnp.asarray(d), lam_qp)
+    assert float(mu) == 0.0 and float(dlam[2]) > 0 and C[0] > 0  # the kink: nu = 0 rising on a violated row
+    phi = lambda t: merit_value(t * (g @ d), E + t * (H @ d), C + t * (C_a @ d), lam + t * dlam, 0.0)
     h = 1e-7
     fd = (phi(h) - phi(0.0)) / h
-    assert abs(float(phi(0.0)) - float(phi0)) < 1e-12 * (1 + abs(float(phi0)))
-    assert abs(float(fd) - float(slope)) < 1e-4 * (1 + abs(float(slope)))
-    assert float(slope) <= -0.5 * float(d @ state.B @ d) * (1 - 1e-12)
+    assert abs(float(phi0) - float(phi(0.0))) < 1e-15
+    assert abs(float(fd) - float(slope)) < 1e-5 * (1 + abs(float(slope)))
+    two_sided = float(
+        jax.jvp(
+            lambda t: merit_value(t * (g @ d), E + t * (H @ d), C + t * (C_a @ d), lam + t * dlam, 0.0), (0.0,), (1.0,)
+        )[1]
+    )
+    assert float(slope) - two_sided == pytest.approx(float(dlam[2]) * C[0], rel=1e-9)
+    assert float(slope) <= -0.5 * float(jnp.asarray(d) @ B @ jnp.asarray(d)) * (1 - 1e-12)
 
 
 @pytest.mark.parametrize("case", range(1, 8))

@@ -173,6 +173,39 @@ def test_elastic_step_is_the_penalty_qp_solution(seed, n, mi):
     np.testing.assert_allclose(np.asarray(d), x, rtol=0, atol=1e-6 * (1.0 + np.max(np.abs(x))))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_elastic_step_softens_inequalities_that_contradict_the_bounds(seed):
+    """Inequality rows inconsistent with the parameter bounds by themselves, no E (a reach
+    x(tf) >= 1 that no bounded control meets at the current tf): softening E changes nothing,
+    so a third round also softens the violated rows, 5 - d_0 <= 0 against d_0 <= 1 here: the
+    step is the minimizer of g d + 1/2 d^T B d + (C_v + C_v,a d)^2 / (2 r) under the bounds
+    and the other rows, r = `elastic` x C_v,a B^-1 C_v,a^T; against qpOASES. (The hard QP's
+    step went past its bounds: multipliers 1e97 on the minimum-time reach, issue 49.)"""
+    rng = np.random.default_rng(seed)
+    n = 4
+    M = rng.normal(size=(n, n))
+    B, g = M @ M.T + 0.1 * np.eye(n), rng.normal(size=n)
+    D, D_a = np.array([5.0, -1.0]), np.vstack([-np.eye(n)[0], rng.normal(size=n)])  # needs d_0 >= 5
+    V, V_a = np.array([-1.0, -1.0]), np.vstack([np.eye(n)[0], -np.eye(n)[0]])  # |d_0| <= 1
+    ev = Evaluation(
+        xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.asarray(g), E=jnp.zeros(0), H=jnp.zeros((0, n)), status=None,
+        D=jnp.asarray(D), D_a=jnp.asarray(D_a), V=jnp.asarray(V), V_a=jnp.asarray(V_a),
+    )  # fmt: skip
+    d, _ = _direction(ev, jnp.asarray(B), jnp.zeros(4), jnp.array([0.0, 1.0]), jnp.zeros((2, n)))
+    r = KalmanSQP().elastic * float(D_a[0] @ np.linalg.solve(B, D_a[0]))
+    # that QP with the softened row's residual as a variable s = (C_0 + C_0,a d) / sqrt(r)
+    x = _qpoases(
+        np.block([[B, np.zeros((n, 1))], [np.zeros((1, n)), np.eye(1)]]),
+        np.concatenate([g, [0.0]]),
+        np.hstack([D_a[:1], -np.sqrt(r) * np.eye(1)]),
+        D[:1],
+        np.concatenate([D[1:], V]),
+        np.hstack([np.vstack([D_a[1:], V_a]), np.zeros((3, 1))]),
+    )[:n]
+    assert abs(x[0] - 1.0) < 1e-9  # on its bound, as near the reach as the bounds allow
+    np.testing.assert_allclose(np.asarray(d), x, rtol=0, atol=1e-6 * (1.0 + np.max(np.abs(x))))
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_step_meets_the_equalities_through_nearly_flat_directions(seed):
     """B with two directions of curvature 1e-8 (its floor: a collapsed segment's level, a

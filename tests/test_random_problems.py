@@ -44,8 +44,9 @@ def test_oracle_affine_map_is_rk4_and_converges_to_the_matrix_exponential():
         M, c = fuzz.rk4_affine(A, B, x0, rp.T, rp.K, rp.m, steps)
         errors.append(np.max(np.abs(M @ a + c - x)))
     assert errors[1] < 1e-6 and 12.0 < errors[0] / errors[1] < 20.0  # fourth order
-    ev = jt.evaluate(rp.problem, rp.control, jnp.asarray(a), simulator=jt.RK4(fuzz.STEPS))
-    np.testing.assert_allclose(float(ev.G), rp.objective(a), rtol=1e-12)
+    params = np.append(a, rp.T) if rp.tf_equality else a
+    ev = jt.evaluate(rp.problem, rp.control, jnp.asarray(params), simulator=jt.RK4(fuzz.STEPS))
+    np.testing.assert_allclose(float(ev.G), rp.objective(params), rtol=1e-12)
 
 
 # Three size classes (a compiled solver is shared by the problems of one class and one
@@ -86,16 +87,25 @@ def _reach_problem():
 
 
 @pytest.mark.parametrize("segments", [1, 2, 3])
-@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
+@pytest.mark.parametrize(
+    "solver", [TRUST_REGION, jt.KalmanSQP(globalization="line-search")], ids=["default", "line-search"]
+)
 def test_minimum_time_reach_with_a_terminal_inequality_at_a_vertex(segments, solver):
     """Issue 49's textbook case: the default STALLED after 2 iterations at tf = 1.5 (the
     merit kept the multiplier of the reach row, strictly inactive at the new point, and
-    predicted an increase for the step towards it); the line search at 1.41444. Now SUCCESS
-    at sqrt(2) from both starts of the issue and their round-off perturbations."""
+    predicted an increase for the step towards it); the line search at 1.41444 (SUCCESS
+    within `path_active` of the vertex, before complementarity was part of the test). From
+    every control on its lower bound (x(tf) < 0, the reach unreachable by the linearization
+    within the bounds) both ended far off (tf 3.84 STALLED, multipliers 1e97; tf 0.24
+    MAX_ITERATIONS) before the elastic step softened violated inequality rows. Now SUCCESS at
+    sqrt(2) from the issue's starts, from u = -1 and u = 1, and their round-off
+    perturbations, with the exact Hessian and either globalization. (BFGS with the line
+    search still ends STALLED from u = -1 with two segments: its penalty stays 0 while a step
+    trades the reach for a shorter tf.)"""
     prob = _reach_problem()
     ctrl = jt.controls.PiecewiseConstant(segments)
-    for u in (0.5, 0.0):
-        for a0 in perturbed_starts(ctrl.initial_guess(2.0, u, u), absolute=True):
+    for tf, u in ((2.0, 0.5), (2.0, 0.0), (3.0, -1.0), (1.0, 1.0)):
+        for a0 in perturbed_starts(ctrl.initial_guess(tf, u, u), absolute=True):
             sol = jt.solve(prob, ctrl, a0, solver=solver)
             assert jt.status_name(sol.status) == "SUCCESS", (u, a0)
             assert abs(float(sol.tf) - np.sqrt(2.0)) <= 1e-8 * np.sqrt(2.0), (u, float(sol.tf))
