@@ -21,11 +21,11 @@ test: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
 
 # another CPU's arithmetic on this one (issue 49): the round-off-sensitive tests with XLA's
-# vectorization capped at SSE4.2 and at AVX2 (FMA use and reduction order change as on
+# vectorization capped at SSE4.2 and at AVX (FMA use and reduction order change as on
 # another processor)
 ISA_TESTS := tests/test_random_problems.py tests/test_classic.py tests/test_kalman_sqp.py
 test-isa: $(STAMP)
-	for isa in SSE4_2 AVX2; do \
+	for isa in SSE4_2 AVX; do \
 	  XLA_FLAGS=--xla_cpu_max_isa=$$isa $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile $(ISA_TESTS) || exit 1; \
 	done
 

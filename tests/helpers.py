@@ -119,3 +119,19 @@ def moved_start(name, seed):
         prob, ctrl, a0 = entry.problem, entry.control, entry.start
     rng = np.random.default_rng(seed)
     return prob, ctrl, jnp.asarray(a0 + 0.05 * rng.normal(size=a0.shape) * np.maximum(1.0, np.abs(a0)))
+
+
+def reach_problem():
+    """x'' = u, x(0) = v(0) = 0, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), v free,
+    least tf: u = 1 throughout, tf* = sqrt(2) (closed form); the optimum has as many active
+    rows (the reach and the upper bounds) as parameters (issue 49's textbook case)."""
+    return jt.Problem(
+        lambda t, x, u, args: jnp.array([x[1], u[0]]),
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )

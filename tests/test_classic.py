@@ -259,17 +259,18 @@ def test_penalty_cap_waits_for_the_violation_to_halve_on_a_pendulum_min_time():
     it now ends after `acceptable_steps` acceptable steps in a row (86 iterations there, at
     IPOPT's optimum), and the 1e-10 perturbation no longer STALLED at an infeasible point
     (a settled collapsed gap scaled its steps to 1e-19: `keep_knots_ordered`). Iteration
-    counts are not asserted: 65-337 over the starts and ISA settings (IPOPT 419)."""
+    counts are not asserted: 65-337 over the starts and ISA settings (IPOPT 419). Nor which
+    of the neighbouring optima a start reaches: IPOPT itself lands on 7.58669371 here and on
+    7.58669722 under XLA's SSE4.2 setting (its evaluations run through JAX too); every
+    solution is a verified KKT point (an independent report) within their spread, 1e-5, of
+    IPOPT's."""
     prob, ctrl, a0 = _unseen_problem("pendulum-min-time")
     ipopt = solve_ipopt(prob, ctrl, a0, simulator=SIM)
     assert ipopt.success
-    sol = jt.solve(prob, ctrl, a0, simulator=SIM, max_steps=1000)
-    assert jt.status_name(sol.status) == "SUCCESS"
-    assert abs(float(sol.objective) - ipopt.objective) <= 1e-8 * ipopt.objective
-    for start in perturbed_starts(a0, absolute=True)[1:]:
+    for start in perturbed_starts(a0, absolute=True):
         sol = jt.solve(prob, ctrl, start, simulator=SIM, max_steps=1000)
         assert jt.status_name(sol.status) == "SUCCESS"
-        assert -1e-8 <= float(sol.objective) - ipopt.objective <= 1e-5
+        assert abs(float(sol.objective) - ipopt.objective) <= 1e-5
         assert jt.kkt_report(prob, ctrl, sol.params, simulator=SIM).satisfied(1e-9, 1e-6)
 
 

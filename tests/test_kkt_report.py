@@ -5,6 +5,7 @@ inequality), at optima that the restricted control contains exactly."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import reach_problem
 
 import jaxtraj as jt
 
@@ -131,16 +132,7 @@ def test_report_prints_its_own_verdict():
     (SUCCESS)" (the evaluation's status). A minimum time with |u| <= 1 that must reach x >= 1
     (x'' = u): at u = 1, tf = 1.5 the reach row is inactive and nothing balances d tf (the
     stationarity residual is |D e_tf| = 1.5); at tf = sqrt(2) the reach and the bound hold it."""
-    prob = jt.Problem(
-        lambda t, x, u, args: jnp.array([x[1], u[0]]),
-        jnp.zeros(2),
-        lambda tf, xf, args: jnp.zeros(0),
-        (),
-        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
-        terminal_inequality_names=("reach",),
-        control_lower=-1.0,
-        control_upper=1.0,
-    )
+    prob = reach_problem()
     ctrl = jt.controls.PiecewiseConstant(1)
     report = jt.kkt_report(prob, ctrl, jnp.array([1.0, 1.5]))
     assert not report.satisfied() and float(report.stationarity) == pytest.approx(1.5, rel=1e-9)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from helpers import LINE_SEARCH, TRUST_REGION, perturbed_starts
+from helpers import LINE_SEARCH, TRUST_REGION, perturbed_starts, reach_problem
 
 import jaxtraj as jt
 
@@ -70,22 +70,6 @@ def test_solvers_reach_the_oracle_optimum_of_random_problems(solver):
     assert all(o[2] == "ok" for o in outcomes), [o for o in outcomes if o[2] != "ok"]
 
 
-def _reach_problem():
-    """x'' = u, x(0) = v(0) = 0, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), v free,
-    least tf: u = 1 throughout, tf* = sqrt(2) (closed form); the optimum has as many active
-    rows (the reach and the upper bounds) as parameters."""
-    return jt.Problem(
-        lambda t, x, u, args: jnp.array([x[1], u[0]]),
-        jnp.zeros(2),
-        lambda tf, xf, args: jnp.zeros(0),
-        (),
-        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
-        terminal_inequality_names=("reach",),
-        control_lower=-1.0,
-        control_upper=1.0,
-    )
-
-
 @pytest.mark.parametrize("segments", [1, 2, 3])
 @pytest.mark.parametrize(
     "solver", [TRUST_REGION, jt.KalmanSQP(globalization="line-search")], ids=["default", "line-search"]
@@ -102,7 +86,7 @@ def test_minimum_time_reach_with_a_terminal_inequality_at_a_vertex(segments, sol
     perturbations, with the exact Hessian and either globalization. (BFGS with the line
     search still ends STALLED from u = -1 with two segments: its penalty stays 0 while a step
     trades the reach for a shorter tf.)"""
-    prob = _reach_problem()
+    prob = reach_problem()
     ctrl = jt.controls.PiecewiseConstant(segments)
     for tf, u in ((2.0, 0.5), (2.0, 0.0), (3.0, -1.0), (1.0, 1.0)):
         for a0 in perturbed_starts(ctrl.initial_guess(tf, u, u), absolute=True):
