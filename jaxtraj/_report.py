@@ -48,8 +48,8 @@ class KKTReport(eqx.Module):
 
     def satisfied(self, ctol: float = 1e-8, gtol: float = 1e-6) -> bool:
         """Whether the point is a first-order KKT point within the tolerances: the status is
-        SUCCESS, `max_violation` <= `ctol` and `stationarity` <= `gtol` (1 + |G|) (KalmanSQP's
-        SUCCESS rule with its `acceptable_gtol`)."""
+        SUCCESS, `max_violation` <= `ctol`, and `stationarity` and `complementarity` <= `gtol`
+        (1 + |G|) (KalmanSQP's SUCCESS rule with its `acceptable_gtol`)."""
         return not self.failures(ctol, gtol)
 
     def failures(self, ctol: float = 1e-8, gtol: float = 1e-6) -> list[str]:
@@ -65,6 +65,8 @@ class KKTReport(eqx.Module):
         limit = gtol * (1.0 + abs(float(self.objective)))
         if not self.stationarity <= limit:
             out.append(f"stationarity {float(self.stationarity):.2e} > gtol (1 + |G|) = {limit:.2e}")
+        if not self.complementarity <= limit:
+            out.append(f"complementarity {float(self.complementarity):.2e} > gtol (1 + |G|) = {limit:.2e}")
         return out
 
     def __str__(self):

@@ -141,3 +141,18 @@ def test_report_prints_its_own_verdict():
     assert optimum.satisfied() and str(optimum).startswith("KKT report, KKT point")
     with pytest.raises(ValueError, match="ctol"):
         optimum.satisfied(ctol="x")
+
+
+def test_report_counts_complementarity_in_its_verdict():
+    """A point 1e-7 inside the reach row with u on its bound: within `active` of the row, so
+    its multiplier balances d tf (stationarity ~0), but nu |C| = 1e-7 (1/sqrt2) is what the
+    row still costs the objective, above gtol (1 + |G|) = 2.4e-8 for gtol 1e-8: not a KKT
+    point at that tolerance, and at 1e-6 it is."""
+    prob = reach_problem()
+    ctrl = jt.controls.PiecewiseConstant(1)
+    tf = np.sqrt(2.0 * (1.0 + 1e-7))  # x(tf) = tf^2 / 2 = 1 + 1e-7
+    report = jt.kkt_report(prob, ctrl, jnp.array([1.0, tf]))
+    assert float(report.stationarity) < 1e-12
+    assert float(report.complementarity) == pytest.approx(1e-7 / np.sqrt(2.0), rel=1e-3)
+    assert not report.satisfied(gtol=1e-8) and report.failures(gtol=1e-8)[0].startswith("complementarity")
+    assert report.satisfied(gtol=1e-6)
