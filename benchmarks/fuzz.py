@@ -198,18 +198,25 @@ def rk4_affine(A, B, x0, T, K, m, steps=STEPS, grid=False):
     return (M, c, points) if grid else (M, c)
 
 
-def make(seed, n=None, m=None, K=None):
-    """Random problem number `seed` (sizes drawn unless given)."""
-    rng = np.random.default_rng(seed)
-    n = n or int(rng.integers(1, 7))
-    m = m or int(rng.integers(1, 4))
-    K = K or int(rng.integers(2, 7))
+def _system(rng, n, m, K, sizes):
+    """A random linear system and its control box, drawn from `rng` in a fixed order: sizes
+    (n < sizes[0], m < sizes[1], K in range(*sizes[2]), unless given), T, A (stable or not),
+    B, x0, and bounds lower < 0 < upper per channel."""
+    n = n or int(rng.integers(1, sizes[0]))
+    m = m or int(rng.integers(1, sizes[1]))
+    K = K or int(rng.integers(*sizes[2]))
     T = float(rng.uniform(0.5, 3.0))
-    A = rng.standard_normal((n, n)) / np.sqrt(n) + rng.uniform(-0.8, 0.5) * np.eye(n)  # stable or not
+    A = rng.standard_normal((n, n)) / np.sqrt(n) + rng.uniform(-0.8, 0.5) * np.eye(n)
     B = rng.standard_normal((n, m))
     x0 = rng.standard_normal(n)
     bound = rng.uniform(0.3, 2.0, m)
-    lower, upper = -bound * rng.uniform(0.5, 1.5, m), bound
+    return n, m, K, T, A, B, x0, -bound * rng.uniform(0.5, 1.5, m), bound
+
+
+def make(seed, n=None, m=None, K=None):
+    """Random problem number `seed` (sizes drawn unless given)."""
+    rng = np.random.default_rng(seed)
+    n, m, K, T, A, B, x0, lower, upper = _system(rng, n, m, K, (7, 4, (2, 7)))
     M, c, points = rk4_affine(A, B, x0, T, K, m, grid=True)
     a_feas = np.tile(lower, K) + (np.tile(upper - lower, K)) * rng.uniform(0.1, 0.9, K * m)
     xf_feas = M @ a_feas + c
@@ -329,15 +336,7 @@ class MinTimeProblem:
 def make_min_time(seed, n=None, m=None, K=None):
     """Random least-time problem number `seed` (sizes drawn unless given)."""
     rng = np.random.default_rng(seed)
-    n = n or int(rng.integers(1, 5))
-    m = m or int(rng.integers(1, 3))
-    K = K or int(rng.integers(1, 5))
-    T = float(rng.uniform(0.5, 3.0))
-    A = rng.standard_normal((n, n)) / np.sqrt(n) + rng.uniform(-0.8, 0.5) * np.eye(n)
-    B = rng.standard_normal((n, m))
-    x0 = rng.standard_normal(n)
-    bound = rng.uniform(0.3, 2.0, m)
-    lower, upper = -bound * rng.uniform(0.5, 1.5, m), bound
+    n, m, K, T, A, B, x0, lower, upper = _system(rng, n, m, K, (5, 3, (1, 5)))
     # a bang-bang-ish control reaches the target point: levels near the bounds
     a_feas = np.where(rng.uniform(size=K * m) < 0.5, np.tile(lower, K), np.tile(upper, K)) * rng.uniform(
         0.7, 1.0, K * m

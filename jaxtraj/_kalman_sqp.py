@@ -316,11 +316,12 @@ class KalmanSQP(AbstractSolver):
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
             B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
-            n_bounds = 0 if ev.V is None else ev.V.shape[0]
-            softened = (jnp.arange(C.shape[0]) < n_rows - n_bounds) & (C > self.ctol)
-            noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var, 0.0)))
+            n_soft = n_rows - (0 if ev.V is None else ev.V.shape[0])  # path and terminal rows
+            C_s, C_as = C[:n_soft], C_a[:n_soft]
+            softened = C_s > self.ctol
+            noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var[:n_soft], 0.0)))
             noise = noise / jnp.maximum(m + jnp.sum(softened), 1) + 1e-300
-            soft_rows = jnp.where(softened[:, None], C_a, 0.0)
+            soft_rows = jnp.where(softened[:, None], C_as, 0.0)
             B_softer = B + (ev.H.T @ ev.H + soft_rows.T @ soft_rows) / noise
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`,
@@ -347,7 +348,13 @@ class KalmanSQP(AbstractSolver):
                 r_eq = jnp.where(softer, noise, jnp.where(elastic, r_soft, r))
                 d_eq, P_eq = self._equality_step(prior, P, ev, r_eq, refine=~elastic)
                 soft = softer & softened
-                d_eq, P_eq, _ = sequential_update(d_eq, P_eq, C_a, -C, jnp.full_like(C, noise), active=soft)
+                # (their observations only in that round: a scan over every path row otherwise)
+                d_eq, P_eq = lax.cond(
+                    softer,
+                    lambda: sequential_update(d_eq, P_eq, C_as, -C_s, jnp.full_like(C_s, noise), active=soft)[:2],
+                    lambda: (d_eq, P_eq),
+                )
+                soft = jnp.concatenate([soft, jnp.zeros(C.shape[0] - n_soft, bool)])
                 d, P2, active, _, excess = inequality_step(
                     d_eq,
                     P_eq,
