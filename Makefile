@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: run test test-isa check bench clean
+.PHONY: run test test-slow test-isa check bench clean
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
@@ -19,6 +19,11 @@ run: $(STAMP)
 # share compiled solvers), at most 4 processes (each can hold a few GB of compiled programs)
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
+
+# the studies marked `slow` (re-solves against finite differences, adaptive simulations), which
+# `make test` leaves out; CI runs them too
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile -m slow
 
 # another CPU's arithmetic on this one (issue 49): the round-off-sensitive tests with XLA's
 # vectorization capped at SSE4.2 and at AVX (FMA use and reduction order change as on

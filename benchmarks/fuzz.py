@@ -17,7 +17,12 @@ Constraint data are drawn around a random feasible point (so every problem is fe
 the target is drawn far away in some problems, so that bounds and half-spaces are active at
 the optimum, up to as many active rows as parameters (vertex optima).
 
-    python benchmarks/fuzz.py --n 200 --solvers default line-search
+Classes: `lq` (above), `lq-mixed` (the same with piecewise-constant or continuous
+piecewise-linear controls, free initial states with bounds, design parameters, a linear path
+row on states and controls together: `MixedProblem`) and `min-time` (least time to a target
+set, by bisection over LPs: `MinTimeProblem`).
+
+    python benchmarks/fuzz.py --n 200 --classes lq lq-mixed min-time --solvers default line-search
 """
 
 import argparse
@@ -352,6 +357,268 @@ def make_min_time(seed, n=None, m=None, K=None):
     return MinTimeProblem(seed, n, m, K, T, args, lower, upper)
 
 
+def _path_row(t, x, u, args):
+    return args["Px"] @ x + args["Pu"] @ u - args["r"]
+
+
+def _control_map(family, K, m, p):
+    """`U(k, tau)`: the (m, p) matrix with u = U a on segment k at rescaled time tau, for
+    piecewise-constant levels (K m entries first) or continuous piecewise-linear nodes ((K + 1)
+    m entries first) on equal segments; the other p - those entries are not control values."""
+
+    def U(k, tau):
+        out = np.zeros((m, p))
+        if family == "constant":
+            out[:, k * m : (k + 1) * m] = np.eye(m)
+        else:
+            out[:, k * m : (k + 1) * m] = (1.0 - tau) * np.eye(m)
+            out[:, (k + 1) * m : (k + 2) * m] += tau * np.eye(m)
+        return out
+
+    return U
+
+
+def rk4_affine_points(A, B, E0, c0, T, K, U, steps=STEPS):
+    """Every grid point's (M, c, Mu) with x = M a + c and u = Mu a, by numpy RK4 on jaxtraj's
+    grid (each segment on rescaled time, `steps` steps; steps + 1 points per segment, its ends
+    included, with that segment's control), for x' = h (A x + B u(tau)), x(0) = E0 a + c0 and
+    the control map `U(k, tau)` (`_control_map`): each stage of the RK4 step is affine in a."""
+    h, dt = T / K, 1.0 / steps
+    M, c = E0.astype(np.float64), c0.astype(np.float64)
+    points = []
+    for k in range(K):
+        points.append((M, c, U(k, 0.0)))
+        for j in range(steps):
+            tau = j * dt
+
+            def f(Mx, cx, s):
+                return h * (A @ Mx + B @ U(k, s)), h * (A @ cx)
+
+            k1 = f(M, c, tau)
+            k2 = f(M + 0.5 * dt * k1[0], c + 0.5 * dt * k1[1], tau + 0.5 * dt)
+            k3 = f(M + 0.5 * dt * k2[0], c + 0.5 * dt * k2[1], tau + 0.5 * dt)
+            k4 = f(M + dt * k3[0], c + dt * k3[1], tau + dt)
+            M = M + dt / 6.0 * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
+            c = c + dt / 6.0 * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
+            points.append((M, c, U(k, tau + dt)))
+    return points
+
+
+@dataclasses.dataclass
+class MixedProblem:
+    """A random fixed-time LQ problem with every constraint kind of the `lq` class and more:
+    piecewise-constant or continuous piecewise-linear controls, free initial states with
+    bounds, design parameters (states with zero rates and a bounded free initial value that
+    enter the dynamics), and a linear path constraint on states and controls together. The
+    restricted problem is still a convex QP on the RK4 grid (`rk4_affine_points`); the cost
+    of 1/2 rho |u|^2 is integrated exactly by RK4 (Simpson's rule on each step, exact for a
+    quadratic in time), so the oracle takes it in closed form."""
+
+    seed: int
+    n: int  # states, design parameters included
+    m: int
+    K: int
+    T: float
+    family: str  # "constant" or "linear"
+    args: dict
+    lower: np.ndarray
+    upper: np.ndarray
+    free: tuple  # free initial states (indices), bounds below
+    free_lower: np.ndarray
+    free_upper: np.ndarray
+    points: list  # (M, c, Mu) of every grid point
+    state_upper: np.ndarray | None
+    path: bool
+
+    @property
+    def num_levels(self):
+        return (self.K if self.family == "constant" else self.K + 1) * self.m
+
+    @property
+    def problem(self):
+        ne, ni = self.args["Pe"].shape[0], self.args["Ci"].shape[0]
+        return jt.Problem(
+            _dynamics,
+            jnp.asarray(self.args["x0"]),
+            _terminal,
+            tuple(f"x{i}" for i in range(ne)),
+            num_controls=self.m,
+            objective=_mayer,
+            running_cost=_running,
+            args=jax.tree.map(jnp.asarray, self.args),
+            final_time=self.T,
+            control_lower=jnp.asarray(self.lower),
+            control_upper=jnp.asarray(self.upper),
+            state_upper=None if self.state_upper is None else jnp.asarray(self.state_upper),
+            path=_path_row if self.path else None,
+            path_names=("path row",) if self.path else (),
+            terminal_inequality=_inequality if ni else None,
+            terminal_inequality_names=tuple(f"half-space {j}" for j in range(ni)),
+            free_initial_state={i: (lo, hi) for i, lo, hi in zip(self.free, self.free_lower, self.free_upper)},
+            name=f"random-mixed-{self.seed}",
+        )
+
+    @property
+    def control(self):
+        if self.family == "constant":
+            family = jt.controls.PiecewiseConstant(self.K, free_times=False, channels=self.m)
+        else:
+            family = jt.controls.PiecewiseLinear(self.K, channels=self.m)
+        return self.problem.parametrize(family)
+
+    def _cost_matrix(self):
+        """R with the integral of |u|^2 = a^T R a (exact: Gram matrix of the control basis)."""
+        h, m, p = self.T / self.K, self.m, self.num_levels
+        if self.family == "constant":
+            return h * np.eye(p)
+        R = np.zeros((p, p))
+        for k in range(self.K):
+            i, j = slice(k * m, (k + 1) * m), slice((k + 1) * m, (k + 2) * m)
+            R[i, i] += h / 3.0 * np.eye(m)
+            R[j, j] += h / 3.0 * np.eye(m)
+            R[i, j] += h / 6.0 * np.eye(m)
+            R[j, i] += h / 6.0 * np.eye(m)
+        return R
+
+    def objective(self, a):
+        a = np.asarray(a, np.float64)
+        M, c, _ = self.points[-1]
+        e = M @ a + c - self.args["target"]
+        u = a[: self.num_levels]
+        return 0.5 * self.args["rho"] * u @ self._cost_matrix() @ u + 0.5 * e @ self.args["S"] @ e
+
+    def _rows(self):
+        """The constraints as (G, h, kind): G a <= h ("ineq") or G a = h ("eq")."""
+        p = self.num_levels + len(self.free)
+        M, c, _ = self.points[-1]
+        I = np.eye(p)
+        levels, tail = I[: self.num_levels], I[self.num_levels :]
+        reps = self.num_levels // self.m
+        rows = [
+            (-levels, -np.tile(self.lower, reps), "ineq"),
+            (levels, np.tile(self.upper, reps), "ineq"),
+            (-tail, -self.free_lower, "ineq"),
+            (tail, self.free_upper, "ineq"),
+            (self.args["Pe"] @ M, self.args["xe"] - self.args["Pe"] @ c, "eq"),
+            (self.args["Ci"] @ M, self.args["di"] - self.args["Ci"] @ c, "ineq"),
+        ]
+        if self.state_upper is not None:
+            j = int(np.argmin(np.isinf(self.state_upper)))
+            rows.append(
+                (
+                    np.array([Mp[j] for Mp, _, _ in self.points]),
+                    np.array([self.state_upper[j] - cp_[j] for _, cp_, _ in self.points]),
+                    "ineq",
+                )
+            )
+        if self.path:
+            Px, Pu, r = self.args["Px"][0], self.args["Pu"][0], self.args["r"][0]
+            rows.append(
+                (
+                    np.array([Px @ Mp + Pu @ Mu for Mp, _, Mu in self.points]),
+                    np.array([r - Px @ cp_ for _, cp_, _ in self.points]),
+                    "ineq",
+                )
+            )
+        return [(G, h, kind) for G, h, kind in rows if G.shape[0]]
+
+    def violation(self, a):
+        a = np.asarray(a, np.float64)
+        return max(
+            [0.0] + [float(np.max(np.abs(G @ a - h) if kind == "eq" else G @ a - h)) for G, h, kind in self._rows()]
+        )
+
+    def oracle(self):
+        import cvxpy as cp
+
+        p = self.num_levels + len(self.free)
+        a = cp.Variable(p)
+        M, c, _ = self.points[-1]
+        L = np.linalg.cholesky(self.args["S"])
+        R = np.linalg.cholesky(self._cost_matrix())
+        cost = 0.5 * self.args["rho"] * cp.sum_squares(R.T @ a[: self.num_levels])
+        cost = cost + 0.5 * cp.sum_squares(L.T @ (M @ a + c - self.args["target"]))
+        cons = [(G @ a == h) if kind == "eq" else (G @ a <= h) for G, h, kind in self._rows()]
+        qp = cp.Problem(cp.Minimize(cost), cons)
+        qp.solve(
+            solver=cp.CLARABEL, tol_gap_abs=1e-13, tol_gap_rel=1e-13, tol_feas=1e-13, tol_ktratio=1e-10, max_iter=500
+        )
+        if qp.status not in ("optimal", "optimal_inaccurate"):
+            raise RuntimeError(f"oracle: {qp.status} on random problem {self.seed}")
+        return self.objective(a.value), np.asarray(a.value)
+
+    def starts(self, rng):
+        """Zeros (clipped into the bounds), random inside the bounds and, for linear pieces, the
+        straight line from the lower to the upper bound; free initial states at x0."""
+        reps = self.num_levels // self.m
+        lo, hi = np.tile(self.lower, reps), np.tile(self.upper, reps)
+        x0 = np.asarray(self.args["x0"])[list(self.free)]
+        starts = {
+            "zeros": np.append(np.clip(np.zeros(lo.shape), lo, hi), x0),
+            "random": np.append(lo + (hi - lo) * rng.uniform(size=lo.shape), x0),
+        }
+        if self.family == "linear":
+            w = np.repeat(np.linspace(0.0, 1.0, reps), self.m)
+            starts["line"] = np.append(lo + (hi - lo) * w, x0)
+        return starts
+
+
+def make_mixed(seed, n=None, m=None, K=None):
+    """Random mixed problem number `seed` (sizes drawn unless given)."""
+    rng = np.random.default_rng(seed)
+    nx, m, K, T, A, B, x0, lower, upper = _system(rng, n, m, K, (5, 3, (2, 6)))
+    family = "constant" if rng.uniform() < 0.5 else "linear"
+    nd = int(rng.integers(0, 3))  # design parameters: states with zero rates entering the dynamics
+    n = nx + nd
+    Aa = np.zeros((n, n))
+    Aa[:nx, :nx] = A
+    Aa[:nx, nx:] = rng.standard_normal((nx, nd))
+    Ba = np.vstack([B, np.zeros((nd, m))])
+    x0 = np.append(x0, rng.standard_normal(nd))
+    free = sorted(rng.permutation(nx)[: int(rng.integers(0, min(nx, 2) + 1))].tolist()) + list(range(nx, n))
+    width = rng.uniform(0.2, 1.5, (2, len(free)))
+    free_lower, free_upper = x0[free] - width[0], x0[free] + width[1]
+    levels = (K if family == "constant" else K + 1) * m
+    p = levels + len(free)
+    E0 = np.zeros((n, p))
+    E0[free, levels + np.arange(len(free))] = 1.0
+    c0 = x0.copy()
+    c0[free] = 0.0
+    points = rk4_affine_points(Aa, Ba, E0, c0, T, K, _control_map(family, K, m, p))
+    reps = levels // m
+    a_feas = np.append(
+        np.tile(lower, reps) + np.tile(upper - lower, reps) * rng.uniform(0.1, 0.9, levels),
+        free_lower + (free_upper - free_lower) * rng.uniform(0.1, 0.9, len(free)),
+    )
+    Mf, cf, _ = points[-1]
+    xf_feas = Mf @ a_feas + cf
+    ne = int(rng.integers(0, min(nx, p - 1) + 1))
+    Pe = np.eye(n)[rng.permutation(nx)[:ne]]
+    ni = int(rng.integers(0, 3))
+    Ci = np.hstack([rng.standard_normal((ni, nx)), np.zeros((ni, nd))])
+    di = Ci @ xf_feas + rng.choice([0.0, 0.1, 1.0], ni)
+    far = rng.uniform() < 0.5
+    target = xf_feas + (5.0 if far else 0.5) * rng.standard_normal(n)
+    W = rng.standard_normal((n, n))
+    S = W @ W.T / n + 0.1 * np.eye(n)
+    rho = float(10.0 ** rng.uniform(-3, 0))
+    on_grid = [(Mp @ a_feas + cp_, Mu @ a_feas) for Mp, cp_, Mu in points]
+    state_upper = None
+    if rng.uniform() < 0.3:
+        j = int(rng.integers(0, nx))
+        state_upper = np.full(n, np.inf)
+        state_upper[j] = max(x[j] for x, _ in on_grid) + rng.choice([0.0, 0.1])
+    path = bool(rng.uniform() < 0.4)  # a row on states and controls, through the feasible point
+    Px, Pu = np.hstack([rng.standard_normal((1, nx)), np.zeros((1, nd))]), rng.standard_normal((1, m))
+    r = np.array([max(Px[0] @ x + Pu[0] @ u for x, u in on_grid) + rng.choice([0.0, 0.1])])
+    x0_start = x0.copy()  # the problem's x0: free components at their start values (inside their bounds)
+    args = dict(A=Aa, B=Ba, x0=x0_start, Pe=Pe, xe=Pe @ xf_feas, Ci=Ci, di=di, target=target, S=S, rho=rho)
+    args.update(Px=Px, Pu=Pu, r=r)
+    return MixedProblem(
+        seed, n, m, K, T, family, args, lower, upper, tuple(free), free_lower, free_upper, points, state_upper, path
+    )
+
+
 SOLVERS = {
     "default": jt.KalmanSQP(),
     "line-search": jt.KalmanSQP(globalization="line-search"),
@@ -359,7 +626,7 @@ SOLVERS = {
 }
 
 
-CLASSES = {"lq": make, "min-time": make_min_time}
+CLASSES = {"lq": make, "min-time": make_min_time, "lq-mixed": make_mixed}
 
 
 def check(rp, solver, a0, reference, max_steps=500):

@@ -1,7 +1,12 @@
-"""`jt.solve`: check the input, pick the default solver, run the driver."""
+"""`jt.solve`: check the input, pick the default solver, run the driver (differentiable by
+the implicit function theorem: `_implicit`)."""
 
-from ._checks import check_inputs
+import jax
+import jax.numpy as jnp
+
+from ._checks import check_inputs, check_problem_and_control
 from ._driver import AbstractSolver, check_max_steps, run
+from ._implicit import ACTIVE_TOL, differentiable_solve
 from ._kalman_sqp import KalmanSQP
 from ._problem import Problem
 from ._simulate import RK4, AbstractSimulator, check_simulator
@@ -17,6 +22,20 @@ def check_solver(solver, max_steps):
     if not isinstance(solver, AbstractSolver):
         raise ValueError(f"`solver` must be a jaxtraj solver (e.g. jt.KalmanSearch()); got {type(solver).__name__}.")
     return solver, check_max_steps(max_steps)
+
+
+def check_start(problem, control, a0):
+    """`check_inputs`; where the concrete checks of `a0`'s values cannot run because the
+    control's arrays are traced (a fixed final time under `jax.grad`, or inside `jax.jit`,
+    where even a constant becomes a tracer), `a0`'s shape only, as for a traced start."""
+    try:
+        return check_inputs(problem, control, a0)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        check_problem_and_control(problem, control)
+    a0 = jnp.asarray(a0, dtype=jnp.float64)
+    if a0.shape != (control.num_params,):
+        raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a0.shape}.")
+    return a0
 
 
 def solve(
@@ -45,11 +64,24 @@ def solve(
     starting vectors (or use `jt.solve_batch`). Failures are reported in `status`, never
     raised, and a non-finite candidate trajectory is a rejected step, not a NaN result.
 
+    **Derivatives.** `jax.grad`, `jax.jvp`, `jax.jacfwd` / `jax.jacrev` (under `jit` and
+    `vmap`) of any float field of the result with respect to the float arrays of `problem`
+    (`args`, `x0`, ...) and of `control` (a fixed final time) come from the implicit
+    function theorem at the returned point with its active set, never from the iterations;
+    `a0` has no derivative, and a solve that did not end SUCCESS (or whose KKT matrix is
+    singular) gives NaN derivatives. See docs/differentiable.md.
+
     **Raises:** `ValueError` for bad input (outside jit).
     """
     solver, max_steps = check_solver(solver, max_steps)
-    a0 = check_inputs(problem, control, a0)
+    a0 = check_start(problem, control, a0)
     check_simulator(simulator)
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
-    return run(solver, problem, control, a0, simulator, max_steps, progress)
+
+    def solve_from(problem, control, a0):
+        return run(solver, problem, control, a0, simulator, max_steps, progress)
+
+    # the activity tolerance of the solver's own KKT test, where it has one
+    active_tol = getattr(solver, "path_active", ACTIVE_TOL)
+    return differentiable_solve(solve_from, problem, control, a0, simulator, active_tol)

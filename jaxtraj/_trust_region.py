@@ -313,6 +313,8 @@ class TRState(eqx.Module):
     radius: jax.Array
     mu: jax.Array  # merit penalty
     cap_ref: jax.Array  # the violation where the penalty was last capped (`TrustRegion.mu_max`)
+    cap_objective: jax.Array  # the objective there
+    raised: jax.Array  # whether a step has raised the penalty since that cap
     streak: jax.Array  # steps in a row at an acceptable point (`_kkt.kkt_outcome`)
     d: jax.Array  # the step of the pending second-order correction
     d_soc: jax.Array
@@ -380,6 +382,8 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
         radius=jnp.asarray(tr.radius, f),
         mu=jnp.asarray(0.0, f),
         cap_ref=jnp.asarray(jnp.inf, f),
+        cap_objective=jnp.asarray(jnp.inf, f),
+        raised=jnp.array(False),
         streak=jnp.array(0, jnp.int32),
         d=zero,
         d_soc=zero,
@@ -438,13 +442,17 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         size = jnp.linalg.norm
     d = jnp.where(fresh, without_scale(d, a, scale_free(ev, a, W, state.lam)), d)  # (`scale_free`)
     # the penalty carries over; near feasibility it is capped at `mu_max` x its natural scale,
-    # but only once the violation has halved since the last cap (`TrustRegion`)
+    # once the violation has halved since the last cap, or where no step has raised it since
+    # and the objective has fallen by `cap_progress` (`TrustRegion`)
     rows = A if with_rows else ev.H
     natural = jnp.linalg.norm(W) / jnp.maximum(jnp.linalg.norm(rows) ** 2, 1e-300)
     viol = _violation_of(ev)
-    cap = fresh & ~far & (viol <= 0.5 * state.cap_ref) & (state.mu > tr.mu_max * natural)
+    progressed = ~state.raised & (ev.G <= state.cap_objective - tr.cap_progress * (1.0 + jnp.abs(state.cap_objective)))
+    cap = fresh & ~far & (progressed | (viol <= 0.5 * state.cap_ref)) & (state.mu > tr.mu_max * natural)
+    cap = cap & (state.streak == 0)  # never at an acceptable point (`_kkt.kkt_outcome`)
     carried = jnp.where(cap, tr.mu_max * natural, state.mu)
     mu_new = _penalty(ev, lam, carried, d, B)
+    raised = fresh & (mu_new > carried)
     mu = jnp.where(fresh, mu_new, state.mu)
     pred = jnp.where(fresh, merit(ev, lam, mu_new) - _model(ev, lam, mu_new, d, B), state.pred)
     phi0 = jnp.where(fresh, merit(ev, lam, mu_new), state.phi0)
@@ -556,6 +564,8 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         radius=radius,
         mu=mu,
         cap_ref=jnp.where(cap, viol, state.cap_ref),
+        cap_objective=jnp.where(cap, ev.G, state.cap_objective),
+        raised=jnp.where(cap, raised, state.raised | raised),
         streak=streak,
         d=d,
         d_soc=jnp.where(jnp.all(jnp.isfinite(d_soc)), d_soc, 0.0),
@@ -604,6 +614,18 @@ class TrustRegion(eqx.Module):
       happens finitely often on the way to feasibility. Capping at every step let a
       pendulum's minimum time (benchmarks/unseen.py) cycle through 8 accepted points
       (MAX_ITERATIONS). benchmarks/RESULTS.md.
+    - `cap_progress`: a cap applies too where no step has raised the penalty since the last
+      one and the objective has fallen by `cap_progress` x (1 + |G|) since then (0.01): the
+      iterates have left the region that penalty was set for, and it has held every step
+      since. The violation need not fall on the way to an optimum far from the first
+      near-feasible point, and the halving rule alone then never capped again: a cart-pole
+      whose final time is fixed by a terminal equality `tf - 2` (bounded force, start tf = 3)
+      capped once at a violation of 1e-7, then crawled with 4e4 x the scale carried over
+      (MAX_ITERATIONS after 2053 iterations at 1e-4 violations; 307 iterations with this
+      rule). Each such cap needs the objective 1 % below the last one's, so they too are
+      finitely many; a cap while violations swing 2x (the pendulum above) needs the halving.
+      No cap applies at an acceptable point (`_kkt.kkt_outcome`): there the endgame has
+      begun, and a lowered penalty sent the pendulum away from its optimum again.
     - `feasibility_first`: far from feasible, |E| > feasibility_first x |H|_F |a|, the normal
       step is taken alone while it is cut (the linearized constraints out of the radius's
       reach), without the tangential step (0.1; 0: wherever the normal step is cut; inf:
@@ -621,6 +643,7 @@ class TrustRegion(eqx.Module):
     gap_floor: float = 0.5
     eta: float = 1e-4
     mu_max: float = 100.0
+    cap_progress: float = 0.01
     feasibility_first: float = 0.1
 
     def __check_init__(self):
@@ -630,6 +653,7 @@ class TrustRegion(eqx.Module):
             "gap_floor": lambda: 0 < self.gap_floor < 1,
             "eta": lambda: 0 < self.eta < 0.25,
             "mu_max": lambda: self.mu_max > 0,
+            "cap_progress": lambda: self.cap_progress >= 0,
             "feasibility_first": lambda: not isinstance(self.feasibility_first, bool) and self.feasibility_first >= 0,
         }
         check_settings("TrustRegion", self, checks)

@@ -239,6 +239,36 @@ def test_penalty_capped_near_feasibility_on_a_cart_pole_swing_up():
         assert int(sol.iterations) <= 1.5 * ipopt.iterations
 
 
+def test_penalty_cap_follows_progress_on_a_cart_pole_with_the_final_time_as_an_equality():
+    """The same cart-pole swing-up stated as a user may state it: the final time free and fixed
+    by a terminal equality tf - 2 = 0, started at tf = 3. The merit penalty was capped once,
+    at the first nearly feasible point (violation 1e-7, objective 5x the optimum); the
+    violation never halved below that again on the way to the optimum, so the 4e4 x its
+    scale carried over stayed, and the trust region crawled: MAX_ITERATIONS after 2053
+    iterations. A cap now also applies where no step has raised the penalty since the last
+    one and the objective has fallen 1 % (`TrustRegion.cap_progress`): SUCCESS at IPOPT's
+    optimum of the fixed-time statement (an independent NLP solver; the same restricted
+    problem), from a round-off perturbation of the start too."""
+    fixed, fixed_ctrl, fixed_a0 = _unseen_problem("cart-pole")
+    ipopt = solve_ipopt(fixed, fixed_ctrl, fixed_a0, simulator=jt.RK4(20))
+    assert ipopt.success
+    target = jnp.array([0.0, np.pi, 0.0, 0.0])
+    prob = jt.Problem(
+        _benchmark("unseen")._cart_pole,
+        np.zeros(4),
+        lambda tf, xf, args: jnp.concatenate([xf[:4] - target, jnp.stack([tf - 2.0])]),
+        ("x", "theta", "v", "omega", "tf = 2"),
+        running_cost=fixed.running_cost,
+        control_lower=-20.0,
+        control_upper=20.0,
+    )
+    ctrl = jt.controls.PiecewiseLinear(20)
+    for start in perturbed_starts(ctrl.initial_guess(3.0, 0.0, 0.0), absolute=True)[:2]:
+        sol = jt.solve(prob, ctrl, start, simulator=jt.RK4(20), max_steps=1500)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert abs(float(sol.objective) - ipopt.objective) <= 1e-8 * ipopt.objective
+
+
 def test_penalty_cap_waits_for_the_violation_to_halve_on_a_pendulum_min_time():
     """A pendulum's least time to the inverted rest with |u| <= 0.5 and six constant pieces
     with free switch times (benchmarks/unseen.py): more pieces than switches, so the optimum

@@ -70,6 +70,46 @@ def test_solvers_reach_the_oracle_optimum_of_random_problems(solver):
     assert all(o[2] == "ok" for o in outcomes), [o for o in outcomes if o[2] != "ok"]
 
 
+def test_mixed_oracle_model_is_jaxtraj_evaluation():
+    """The `lq-mixed` oracle's model (its own numpy RK4 of the affine map through linear
+    pieces, free initial states and design parameters; the running cost in closed form) gives
+    jaxtraj's objective, terminal rows, and path and state-bound rows at every grid point."""
+    fuzz = _fuzz()
+    rp = fuzz.make_mixed(59)  # linear pieces, 2 channels, a design parameter, free states, every row kind
+    assert rp.family == "linear" and rp.path and rp.state_upper is not None and len(rp.free) == 3
+    a = rp.starts(np.random.default_rng(0))["random"]
+    ev = jt.evaluate(rp.problem, rp.control, jnp.asarray(a), simulator=jt.RK4(fuzz.STEPS))
+    rows = {
+        kind: G @ a - h
+        for kind, (G, h, _) in zip(("lo", "hi", "x0 lo", "x0 hi", "E", "D", "state", "path"), rp._rows())
+    }
+    np.testing.assert_allclose(float(ev.G), rp.objective(a), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.E), rows["E"], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.D), rows["D"], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.C), np.stack([rows["path"], rows["state"]], axis=1), atol=1e-12)
+
+
+# linear and constant pieces, free initial states, design parameters, path rows on states and
+# controls, state bounds (benchmarks/fuzz.py --classes lq-mixed runs many more)
+MIXED = [46, 52, 1, 4, 5]
+
+
+@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
+def test_solvers_reach_the_oracle_optimum_of_mixed_problems(solver):
+    """Every start of each `lq-mixed` sample problem (zeros, random, the straight line for
+    linear pieces): SUCCESS at the QP's optimal value (1e-8 relative) with every constraint
+    met (1e-8)."""
+    fuzz = _fuzz()
+    outcomes = []
+    for seed in MIXED:
+        rp = fuzz.make_mixed(seed)
+        reference, _ = rp.oracle()
+        for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items():
+            outcome, its, err = fuzz.check(rp, solver, a0, reference)
+            outcomes.append((seed, kind, outcome, its, err))
+    assert all(o[2] == "ok" for o in outcomes), [o for o in outcomes if o[2] != "ok"]
+
+
 @pytest.mark.parametrize("segments", [1, 2, 3])
 @pytest.mark.parametrize(
     "solver", [TRUST_REGION, jt.KalmanSQP(globalization="line-search")], ids=["default", "line-search"]

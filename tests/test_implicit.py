@@ -1,0 +1,387 @@
+"""Derivatives of `jt.solve` by the implicit function theorem (issue 50), against answers
+that do not come from jaxtraj: the restricted LQ problem's optimum by a NumPy linear solve,
+minimum times in closed form, the multipliers of `jt.kkt_report`."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import rel_err
+from test_compilation import compilations
+
+import jaxtraj as jt
+from jaxtraj._implicit import kkt_point
+
+SIM = jt.RK4(2)  # exact on every problem here: piecewise constant u, polynomial states
+
+
+# ---------------------------------------------------------------- problems
+
+
+def _double_integrator(t, x, u, args):
+    return jnp.stack([x[1], args["g"] * u[0]])
+
+
+def _reach_rest(tf, xf, args):
+    return jnp.stack([xf[0] - args["d"], xf[1]])
+
+
+def _energy(t, x, u, args):
+    return 0.5 * args["w"] * u[0] ** 2
+
+
+def _on_target(tf, xf, args):
+    return xf - args["target"]
+
+
+def _short_of(tf, xf, args):
+    return jnp.stack([args["d"] - xf[0]])
+
+
+LQ_T, LQ_K = 2.0, 3
+LQ_X0 = np.array([0.3, -0.2])
+LQ_ARGS = {"target": jnp.array([1.0, 0.5]), "w": jnp.asarray(2.0), "g": jnp.asarray(1.0)}
+LQ = jt.Problem(
+    _double_integrator, LQ_X0, _on_target, ("position", "velocity"), running_cost=_energy, args=LQ_ARGS, final_time=LQ_T
+)
+LQ_FAMILY = jt.controls.PiecewiseConstant(LQ_K, free_times=False)
+LQ_START = LQ.parametrize(LQ_FAMILY).initial_guess(LQ_T, 0.0, 0.0)
+
+
+def lq_problem(theta):
+    """LQ with `theta` = {"target", "w", "x0", "T"} put into its arrays: the arguments, the
+    initial state (the accumulated cost's 0 appended: the Mayer form) and the fixed final
+    time (the problem's and its control's)."""
+    prob = eqx.tree_at(
+        lambda p: (p.args["target"], p.args["w"], p.x0, p.final_time),
+        LQ,
+        (theta["target"], theta["w"], jnp.append(theta["x0"], 0.0), theta["T"]),
+    )
+    return prob, prob.parametrize(LQ_FAMILY)
+
+
+LQ_THETA = {"target": LQ_ARGS["target"], "w": LQ_ARGS["w"], "x0": jnp.asarray(LQ_X0), "T": jnp.asarray(LQ_T)}
+
+
+def lq_solve(theta, **kwargs):
+    prob, ctrl = lq_problem(theta)
+    return jt.solve(prob, ctrl, LQ_START, simulator=SIM, **kwargs)
+
+
+def lq_reference(target, w, x0, T):
+    """`(J*, u*, A, M, r)` of the restricted LQ problem by NumPy: min 1/2 w h |u|^2 subject to
+    A u = r, A's rows the final position and velocity per level, r = target - (x0 coasting):
+    u* = A^T M^-1 r, M = A A^T, J* = 1/2 w h r^T M^-1 r."""
+    h = T / LQ_K
+    t = h * np.arange(LQ_K)
+    A = np.stack([h * (T - t - h / 2), np.full(LQ_K, h)])
+    r = np.asarray(target) - np.array([x0[0] + x0[1] * T, x0[1]])
+    M = A @ A.T
+    y = np.linalg.solve(M, r)
+    return 0.5 * w * h * r @ y, A.T @ y, A, M, r
+
+
+def min_time_problem(d=1.5, g=0.8, **changes):
+    """x'' = g u, |u| <= 1, from rest at 0 to rest at `d` in least time: bang-bang,
+    tf* = 2 sqrt(d / g)."""
+    return jt.Problem(
+        _double_integrator,
+        jnp.zeros(2),
+        _reach_rest,
+        ("position", "velocity"),
+        args={"d": jnp.asarray(d), "g": jnp.asarray(g)},
+        control_lower=-1.0,
+        control_upper=1.0,
+        **changes,
+    )
+
+
+MT = min_time_problem()
+MT_CONTROL = jt.controls.PiecewiseConstant(2)
+MT_START = MT_CONTROL.initial_guess(2.5, 1.0, -1.0)
+
+
+def min_time(args, control=MT_CONTROL, start=MT_START, problem=MT, **kwargs):
+    return jt.solve(eqx.tree_at(lambda p: p.args, problem, args), control, start, simulator=SIM, **kwargs).tf
+
+
+#: eager: it reuses the compiled solve of the plain `jt.solve` calls (a test-time saving)
+MT_GRAD = jax.value_and_grad(min_time)
+
+
+# ---------------------------------------------------------------- tests
+
+
+def test_lq_derivatives_match_the_linear_algebra():
+    """dJ*/d(target, w, x0, T) and du*/d(target, x0) of the restricted LQ problem (fixed
+    final time, running cost, terminal equalities) against NumPy's linear solve; dJ*/dT (the
+    fixed final time, in the problem and its control) against central differences of it."""
+
+    def objective_and_params(theta):
+        sol = lq_solve(theta)
+        return sol.objective, sol.params
+
+    jac = jax.jit(jax.jacfwd(objective_and_params))(LQ_THETA)
+    sol = jax.jit(lq_solve)(LQ_THETA)
+    assert sol.status == jt.Status.SUCCESS
+    J, u, A, M, r = lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T)
+    h = LQ_T / LQ_K
+    assert rel_err(sol.objective, J) < 1e-9 and rel_err(sol.params, u) < 1e-9
+    dJ_dr = 2.0 * h * np.linalg.solve(M, r)
+    coast = np.array([[1.0, LQ_T], [0.0, 1.0]])  # r = target - coast @ x0
+    dJ, du = jac
+    assert rel_err(dJ["target"], dJ_dr) < 1e-7
+    assert rel_err(dJ["x0"], -coast.T @ dJ_dr) < 1e-7
+    assert rel_err(dJ["w"], J / 2.0) < 1e-7
+    step = 1e-5
+    fd = (
+        lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T + step)[0]
+        - lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T - step)[0]
+    ) / (2 * step)
+    assert rel_err(dJ["T"], fd) < 1e-6
+    du_dr = A.T @ np.linalg.inv(M)
+    assert rel_err(du["target"], du_dr) < 1e-7
+    assert rel_err(du["x0"], -du_dr @ coast) < 1e-7
+    # the multipliers are derivatives: dJ*/d(target) = -lambda (E = x(T) - target)
+    report = jt.kkt_report(*lq_problem(LQ_THETA), sol.params, simulator=SIM)
+    lam = np.array([report.multipliers["position"], report.multipliers["velocity"]])
+    assert rel_err(dJ["target"], -lam) < 1e-7
+
+
+def test_minimum_time_derivatives_through_the_control_bounds():
+    """tf* = 2 sqrt(d / g) at a vertex (both levels on their bounds, the switch and tf fixed
+    by the terminal equalities): dtf*/dd = 1 / sqrt(d g), dtf*/dg = -sqrt(d) / g^1.5, and
+    dtf*/dd = -lambda_position."""
+    d, g = 1.5, 0.8
+    args = dict(MT.args)
+    tf, grad = MT_GRAD(args)
+    assert rel_err(tf, 2 * np.sqrt(d / g)) < 1e-9
+    assert rel_err(grad["d"], 1 / np.sqrt(d * g)) < 1e-7
+    assert rel_err(grad["g"], -np.sqrt(d) / g**1.5) < 1e-7
+    sol = jt.solve(MT, MT_CONTROL, MT_START, simulator=SIM)
+    report = jt.kkt_report(MT, MT_CONTROL, sol.params, simulator=SIM)
+    assert rel_err(grad["d"], -report.multipliers["position"]) < 1e-7
+
+    # the bounds' arrays: accelerating at g U and braking at g B, tf = sqrt(2 d (1/(g U) + 1/(g B)))
+    def tf_in_bounds(lower, upper):
+        prob = eqx.tree_at(lambda p: (p.control_lower, p.control_upper), MT, (lower, upper))
+        return jt.solve(prob, MT_CONTROL, MT_START, simulator=SIM).tf
+
+    d_lower, d_upper = jax.grad(tf_in_bounds, argnums=(0, 1))(MT.control_lower, MT.control_upper)
+    assert rel_err(d_upper, -d / (g * tf)) < 1e-7 and rel_err(d_lower, d / (g * tf)) < 1e-7
+
+
+def test_an_active_terminal_inequality():
+    """Reach x(tf) >= d (a terminal inequality) with |u| <= 1, velocity free: u = 1 on both
+    pieces, tf* = sqrt(2 d / g), its derivatives in d and g through the active inequality
+    and bound rows."""
+    d, g = 1.5, 0.8
+    prob = jt.Problem(
+        _double_integrator,
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        args={"d": jnp.asarray(d), "g": jnp.asarray(g)},
+        terminal_inequality=_short_of,
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )
+    ctrl = jt.controls.PiecewiseConstant(2, free_times=False)
+    start = ctrl.initial_guess(2.0, 0.5, 0.5)
+
+    def tf(args):
+        return jt.solve(eqx.tree_at(lambda p: p.args, prob, args), ctrl, start, simulator=SIM).tf
+
+    value, grad = jax.jit(jax.value_and_grad(tf))(dict(prob.args))
+    assert rel_err(value, np.sqrt(2 * d / g)) < 1e-9
+    assert rel_err(grad["d"], 1 / np.sqrt(2 * d * g)) < 1e-7
+    assert rel_err(grad["g"], -0.5 * np.sqrt(2 * d) / g**1.5) < 1e-7
+
+
+def test_forward_and_reverse_modes_agree():
+    """jax.jacfwd and jax.jacrev (under jit) give the same Jacobian of the objective and the
+    parameters; jax.grad and jax.jvp without jit give its row and column."""
+    theta = jnp.array([1.0, 0.5])
+
+    def objective_and_params(target):
+        sol = lq_solve({**LQ_THETA, "target": target})
+        return sol.objective, sol.params
+
+    fwd = jax.jit(jax.jacfwd(objective_and_params))(theta)
+    rev = jax.jit(jax.jacrev(objective_and_params))(theta)
+    assert rel_err(rev[0], fwd[0]) < 1e-10 and rel_err(rev[1], fwd[1]) < 1e-10
+    objective = lambda target: objective_and_params(target)[0]
+    assert rel_err(jax.grad(objective)(theta), fwd[0]) < 1e-10
+    assert rel_err(jax.jvp(objective, (theta,), (jnp.array([0.0, 1.0]),))[1], fwd[0][1]) < 1e-10
+
+
+def test_vmap_of_gradients_is_one_program_and_equals_a_loop():
+    """jax.vmap over a batch of targets gives the gradients of a loop of solves; once
+    compiled, a new batch of the same size compiles nothing."""
+    grad = jax.jit(jax.vmap(jax.grad(min_time)))
+    batch = {"d": jnp.array([1.0, 1.5, 2.0]), "g": jnp.array([0.8, 1.0, 1.2])}
+    got = grad(batch)
+    for i in range(3):
+        want = MT_GRAD({k: v[i] for k, v in batch.items()})[1]
+        assert rel_err(got["d"][i], want["d"]) < 1e-10 and rel_err(got["g"][i], want["g"]) < 1e-10
+        d, g = batch["d"][i], batch["g"][i]
+        assert rel_err(got["d"][i], 1 / np.sqrt(d * g)) < 1e-7
+    assert str(jax.make_jaxpr(jax.vmap(jax.grad(min_time)))(batch)).count("name=run") == 1  # the solve, once
+    with compilations() as names:
+        again = grad({"d": jnp.array([1.1, 1.6, 2.1]), "g": jnp.array([0.9, 1.0, 1.1])})
+    assert names == []
+    assert rel_err(again["d"], 1 / np.sqrt(np.array([1.1, 1.6, 2.1]) * np.array([0.9, 1.0, 1.1]))) < 1e-7
+
+
+def test_unsuccessful_or_singular_solves_give_nan():
+    """A solve stopped short (max_steps=1) gives NaN derivatives; so does a SUCCESS whose
+    KKT matrix is singular (three pieces for a bang-bang control: where the two equal
+    pieces meet is free). NaN survives the transposition of reverse mode."""
+    args = dict(MT.args)
+    tangent = {"d": jnp.asarray(1.0), "g": jnp.asarray(0.0)}
+
+    short = lambda a: min_time(a, max_steps=1)
+    assert np.isnan(jax.jvp(short, (args,), (tangent,))[1])  # forward mode here, reverse below
+    three = jt.controls.PiecewiseConstant(3)
+    start = three.initial_guess(2.5, 1.0, -1.0)
+    sol = jt.solve(MT, three, start, simulator=SIM)
+    assert sol.status == jt.Status.SUCCESS and rel_err(sol.tf, 2 * np.sqrt(1.5 / 0.8)) < 1e-9
+    grad = jax.grad(lambda a: min_time(a, three, start))(args)
+    assert np.all(np.isnan(jax.tree.leaves(grad)))
+    point = kkt_point(MT, three, sol, SIM)
+    assert not point.curved and not point.differentiable
+
+
+def test_weakly_active_row_is_reported_and_let_go():
+    """A bound met exactly at the unconstrained optimum (tf <= tf*, multiplier 0) is weakly
+    active: `kkt_point` reports it, and the derivative is the one-sided one that lets it go
+    (the unbounded problem's dtf*/dd = 1 / sqrt(d g))."""
+    d, g = 1.5, 0.8
+    prob = min_time_problem(d, g, tf_bounds=(0.0, 2 * np.sqrt(d / g)))
+    sol = jt.solve(prob, MT_CONTROL, MT_START, simulator=SIM)
+    assert sol.status == jt.Status.SUCCESS
+    point = kkt_point(prob, MT_CONTROL, sol, SIM)
+    assert point.differentiable and point.weakly_active[0] and np.sum(point.weakly_active) == 1
+    grad = jax.grad(lambda args: min_time(args, problem=prob))(dict(prob.args))
+    assert rel_err(grad["d"], 1 / np.sqrt(d * g)) < 1e-7
+
+
+def test_start_has_no_derivative_and_plain_solves_are_unchanged():
+    """d(anything)/d(a0) = 0; a solve that is not differentiated returns the driver's result
+    bit for bit."""
+    from jaxtraj._driver import run
+
+    grad = jax.jit(jax.grad(lambda a0: jt.solve(MT, MT_CONTROL, a0, simulator=SIM).tf))(MT_START)
+    assert np.all(grad == 0.0)
+    sol = jt.solve(MT, MT_CONTROL, MT_START, simulator=SIM)
+    direct = run(jt.KalmanSQP(), MT, MT_CONTROL, MT_START, SIM, 5000, 0)
+    assert jax.tree.structure(sol) == jax.tree.structure(direct)
+    for got, want in zip(jax.tree.leaves(sol), jax.tree.leaves(direct)):
+        np.testing.assert_array_equal(got, want)  # NaN where NaN (the unused history)
+
+
+@pytest.mark.parametrize("field", ["tf", "constraints", "max_constraint_error"])
+def test_every_float_field_has_a_derivative(field):
+    """tf, the constraints (zero: they stay met) and max |E| (zero) of the LQ problem along
+    its final time: the constrained fields' tangents vanish, tf's is 1."""
+    T = jnp.asarray(LQ_T)
+    tangent = jax.jvp(lambda T: getattr(lq_solve({**LQ_THETA, "T": T}), field), (T,), (jnp.ones(()),))[1]
+    want = {"tf": 1.0, "constraints": np.zeros(2), "max_constraint_error": 0.0}[field]
+    np.testing.assert_allclose(tangent, want, atol=1e-9)
+
+
+BD = jt.problems.classic.get("bryson-denham")
+
+
+@pytest.mark.parametrize("bound", [1.0 / 9.0, 0.2])
+def test_state_bound_on_the_grid(bound):
+    """Bryson-Denham, x <= l on the integration grid (a path constraint): dJ*/dl against
+    central differences of re-solves, for a boundary arc (l = 1/9: also near the closed
+    form -4 / (9 l^2) of the unrestricted problem) and a touch point (l = 0.2, at a knot,
+    where the grid holds the point twice)."""
+    sim = jt.RK4(4)
+
+    def objective(l):
+        prob = eqx.tree_at(lambda p: p.path.fn.upper, BD.problem, jnp.reshape(l, (1,)))
+        return jt.solve(prob, BD.control, BD.start, simulator=sim).objective
+
+    value_and_grad = jax.jit(jax.value_and_grad(objective))
+    J, grad = value_and_grad(jnp.asarray(bound))
+    step = 1e-4
+    fd = (value_and_grad(bound + step)[0] - value_and_grad(bound - step)[0]) / (2 * step)
+    assert rel_err(grad, fd) < 1e-6
+    if bound < 1.0 / 6.0:
+        assert rel_err(J, 4.0 / (9.0 * bound)) < 2e-3 and rel_err(grad, -4.0 / (9.0 * bound**2)) < 1e-2
+
+
+def test_what_is_computed_from_the_solution_follows():
+    """A trajectory simulated at `sol.params` (`jt.simulate`) gets its derivative: the final
+    state meets the target, so dx(T)/d(target) = I, and the accumulated cost's row is
+    dJ*/d(target)."""
+
+    def final_state(target):
+        theta = {**LQ_THETA, "target": target}
+        prob, ctrl = lq_problem(theta)
+        return jt.simulate(prob, ctrl, lq_solve(theta).params, simulator=SIM).xf
+
+    jac = jax.jit(jax.jacfwd(final_state))(LQ_ARGS["target"])
+    np.testing.assert_allclose(jac[:2], np.eye(2), atol=1e-9)
+    _, _, _, M, r = lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T)
+    assert rel_err(jac[2], 2.0 * (LQ_T / LQ_K) * np.linalg.solve(M, r)) < 1e-7
+
+
+def test_riccati_lq_in_the_initial_state():
+    """The gallery's LQ regulator (min 1/2 int (x^2 + u^2), x(1) free: no constraint at all):
+    J* = tanh(1) x0^2 / 2 by Riccati, so dJ*/dx0 = tanh(1) x0; the restricted J* is exactly
+    quadratic in x0 too, so its derivative is 2 J* / x0 to round-off."""
+    entry = jt.problems.classic.get("lq")
+    sim = jt.RK4(10)
+
+    def objective(x0):
+        prob = eqx.tree_at(lambda p: p.x0, entry.problem, jnp.stack([x0, 0.0]))
+        return jt.solve(prob, entry.control, entry.start, simulator=sim).objective
+
+    J, grad = jax.jit(jax.value_and_grad(objective))(jnp.asarray(1.3))
+    assert rel_err(grad, 2.0 * J / 1.3) < 1e-8
+    assert rel_err(grad, np.tanh(1.0) * 1.3) < 1e-5
+
+
+@pytest.mark.slow
+def test_earth_mars_against_re_solves():
+    """Earth-Mars case 4: dtf*/d(thrust acceleration) and dtf*/d(target radius) against
+    central differences of re-solves warm-started at the optimum (issue 50's acceptance)."""
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    start = jt.solve(prob, ctrl, a0).params
+
+    def tf(args):
+        return jt.solve(eqx.tree_at(lambda p: p.args, prob, args), ctrl, start).tf
+
+    value_and_grad = jax.jit(jax.value_and_grad(tf))
+    _, grad = value_and_grad(dict(prob.args))
+    for name in ("thrust", "rf"):
+        step = 1e-5 * float(prob.args[name])
+        up, down = dict(prob.args), dict(prob.args)
+        up[name], down[name] = prob.args[name] + step, prob.args[name] - step
+        fd = (value_and_grad(up)[0] - value_and_grad(down)[0]) / (2 * step)
+        assert rel_err(grad[name], fd) < 1e-6
+
+
+@pytest.mark.slow  # 13 s of CPU, mostly compiling diffrax's loops
+def test_adaptive_diffrax_simulation_in_both_modes():
+    """With a diffrax simulator (adaptive steps in while loops, which reverse mode cannot
+    transpose) the tangent goes through explicit Jacobians: jax.grad and jax.jvp both give
+    the minimum-energy transfer's dJ*/dT = -18 / T^4 (J* = 6 / T^3, the final time T an
+    equality target in `args`)."""
+    base = jt.problems.analytic.min_energy_double_integrator(1.0)
+    ctrl = jt.controls.PiecewiseLinear(3)
+    sim = jt.Diffrax(dense_points=3)
+
+    def objective(T):
+        prob = eqx.tree_at(lambda p: p.args["tf"], base, T)
+        return jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), simulator=sim).objective
+
+    T = jnp.asarray(1.0)
+    assert rel_err(jax.grad(objective)(T), -18.0) < 1e-8
+    assert rel_err(jax.jvp(objective, (T,), (jnp.ones(()),))[1], -18.0) < 1e-8
