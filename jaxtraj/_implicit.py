@@ -344,10 +344,55 @@ def differentiable_solve(run, problem, control, a0, simulator, active_tol):
         arrays, a0 = primals
         sol = solve(arrays, a0)  # itself: a second derivative meets this rule again
         p, c = eqx.combine(arrays, static)
-        dtheta = eqx.filter(eqx.combine(tangents[0], static), jax.tree.map(eqx.is_inexact_array, (p, c)))
-        computed = kkt_tangents(p, c, simulator, sol, active_tol, dtheta)
-        names = [k for k in computed if getattr(sol, k) is not None]
-        zeros = jax.tree.map(_zero_tangent, sol)
-        return sol, eqx.tree_at(lambda s: [getattr(s, k) for k in names], zeros, [computed[k] for k in names])
+        computed = kkt_tangents(p, c, simulator, sol, active_tol, _theta_tangents(p, c, static, tangents[0]))
+        return sol, _solution_tangent(sol, computed)
 
     return solve(arrays, a0)
+
+
+def _theta_tangents(problem, control, static, tangents):
+    """The tangents of the arrays of `(problem, control)` as `kkt_tangents`' `dtheta`: those
+    of the inexact arrays, None elsewhere."""
+    mask = jax.tree.map(eqx.is_inexact_array, (problem, control))
+    return eqx.filter(eqx.combine(tangents, static), mask)
+
+
+def _solution_tangent(sol, computed):
+    """The tangent of `sol` (a `Solution`, or a batch of them): `computed` (`kkt_tangents`'
+    fields, by name) where the field is present, zero elsewhere."""
+    names = [k for k in computed if getattr(sol, k) is not None]
+    zeros = jax.tree.map(_zero_tangent, sol)
+    return eqx.tree_at(lambda s: [getattr(s, k) for k in names], zeros, [computed[k] for k in names])
+
+
+def differentiable_batch(run, problem, control, simulator, active_tol):
+    """`run(problem, control)` (a batch of solves returning a `Solution` with a leading
+    start axis, e.g. `jt.solve_batch`'s driver with its starts closed over; host code that
+    needs concrete arrays) as a function that `jax.grad`, `jax.jvp` and `jax.jacfwd` /
+    `jax.jacrev` differentiate with respect to the inexact arrays of `problem` and
+    `control`, shared by all the starts: the tangent is `jax.vmap` over the starts of
+    `kkt_tangents` (each at its own solution and active set; NaN for a start that did not
+    end SUCCESS), the problem's tangent shared. Not under `jax.jit` or `jax.vmap` (`run`
+    is not traceable); without differentiation it is `run` itself."""
+    arrays, static = eqx.partition((problem, control), eqx.is_array)
+
+    @jax.custom_jvp
+    def solve(arrays):
+        # a derivative calls this with concrete arrays (the rule below); `jit` or `vmap` would not
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(arrays)):
+            raise ValueError(
+                "solve_batch runs outside jax.jit and jax.vmap (its problem and control must be "
+                "concrete; they may be differentiated): inside them, vmap jt.solve."
+            )
+        return run(*eqx.combine(arrays, static))
+
+    @solve.defjvp
+    def solve_jvp(primals, tangents):
+        (arrays,), (darrays,) = primals, tangents
+        sols = solve(arrays)
+        p, c = eqx.combine(arrays, static)
+        dtheta = _theta_tangents(p, c, static, darrays)
+        computed = jax.vmap(lambda sol: kkt_tangents(p, c, simulator, sol, active_tol, dtheta))(sols)
+        return sols, _solution_tangent(sols, computed)
+
+    return solve(arrays)

@@ -385,3 +385,144 @@ def test_adaptive_diffrax_simulation_in_both_modes():
     T = jnp.asarray(1.0)
     assert rel_err(jax.grad(objective)(T), -18.0) < 1e-8
     assert rel_err(jax.jvp(objective, (T,), (jnp.ones(()),))[1], -18.0) < 1e-8
+
+
+def test_solar_sail_minimum_time_in_the_characteristic_acceleration():
+    """Kelley's sail transfer to Mars' orbit (the pitch bounds left out, as in
+    test_solar_sail; PiecewiseLinear(6), RK4(20)): dtf*/da0 (a0 the characteristic
+    acceleration, in `args`) against central differences of re-solves warm-started at the
+    optimum (measured 3e-9 relative)."""
+    import jaxtraj.problems.solar_sail as ss
+
+    sail = ss.problem("mars", ss.KELLEY_A0, r_f=ss.KELLEY_RF)
+    prob = jt.Problem(sail.dynamics, sail.x0, sail.terminal, sail.constraint_names, args=sail.args, name="unbounded")
+    ctrl = jt.controls.PiecewiseLinear(6)
+    alpha = np.radians(35.0)
+    sim = jt.RK4(20)
+
+    def tf(a0, start):
+        sol = jt.solve(eqx.tree_at(lambda p: p.args["a0"], prob, a0), ctrl, start, simulator=sim, max_steps=300)
+        return sol.tf, (sol.params, sol.status)
+
+    value_and_grad = jax.jit(jax.value_and_grad(tf, has_aux=True))
+    a0 = prob.args["a0"]
+    (_, (start, status)), _ = value_and_grad(a0, ctrl.initial_guess(7.0, alpha, alpha))
+    assert status == jt.Status.SUCCESS
+    (_, (_, status)), grad = value_and_grad(a0, start)
+    assert status == jt.Status.SUCCESS and grad < 0.0  # a stronger sail arrives sooner
+    step = 1e-5 * float(a0)
+    up, down = value_and_grad(a0 + step, start)[0], value_and_grad(a0 - step, start)[0]
+    assert up[1][1] == jt.Status.SUCCESS and down[1][1] == jt.Status.SUCCESS
+    assert rel_err(grad, (up[0] - down[0]) / (2 * step)) < 1e-6
+
+
+@pytest.mark.slow  # 16 s of CPU, mostly compiling
+def test_attitude_slew_in_the_keep_out_half_angle():
+    """The minimum-energy slew with the sun keep-out cone active (KalmanSQP, 8 segments,
+    RK4(20)): dJ*/d(cone half-angle) against central differences of warm-started re-solves
+    (measured 3e-9 relative). The half-angle enters through the array
+    `args["cos_cone_enforced"]` = cos(half-angle + backoff)."""
+    from jaxtraj.problems import attitude
+
+    prob, ctrl, a0 = attitude.case("quaternion", 8)
+    sim = jt.RK4(20)
+    backoff = 1e-3  # the default `cone_backoff_deg`
+
+    def energy(deg, start):
+        cos_cone = jnp.cos(jnp.deg2rad(deg + backoff))
+        p = eqx.tree_at(lambda p: p.args["cos_cone_enforced"], prob, cos_cone)
+        sol = jt.solve(p, ctrl, start, simulator=sim, max_steps=600)
+        return sol.objective, (sol.params, sol.status)
+
+    value_and_grad = jax.jit(jax.value_and_grad(energy, has_aux=True))
+    deg = jnp.asarray(50.0)
+    (_, (start, status)), _ = value_and_grad(deg, a0)
+    assert status == jt.Status.SUCCESS
+    (J, (_, status)), grad = value_and_grad(deg, start)
+    assert status == jt.Status.SUCCESS and rel_err(J, 2.2652046) < 1e-7
+    assert grad > 0.0  # a wider cone costs energy
+    step = 1e-3
+    up, down = value_and_grad(deg + step, start)[0], value_and_grad(deg - step, start)[0]
+    assert up[1][1] == jt.Status.SUCCESS and down[1][1] == jt.Status.SUCCESS
+    assert rel_err(grad, (up[0] - down[0]) / (2 * step)) < 1e-6
+
+
+def _fuzz():
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "fuzz.py"
+    spec = importlib.util.spec_from_file_location("fuzz", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("seed", [2, 6, 9, 18])
+def test_random_qp_against_the_oracle(seed):
+    """Random convex problems of benchmarks/fuzz.py (3 states, 2 controls, 4 pieces; seed 2:
+    2 terminal equalities, 6 control-bound rows active; 6: 1 equality, a state bound on the
+    grid, 5 bound rows active; 9: tf a parameter fixed by an equality; 18: an active terminal
+    inequality): d(objective*)/d(target) and d(objective*)/d(xe) from jax.grad through
+    jt.solve against central differences of the QP optimum by Clarabel (cvxpy), re-solved
+    with the perturbed data (measured <= 2e-11 relative: on a fixed active set the optimal
+    value is quadratic in the data, so central differences are exact but for the QP
+    solver's round-off). (Seed 19 of this size ends with a state bound and an equality on
+    the same final state, both active: dependent rows, NaN derivatives by design.)"""
+    import dataclasses
+
+    fuzz = _fuzz()
+    rp = fuzz.make(seed, 3, 2, 4)
+    prob, ctrl = rp.problem, rp.control
+    start = jnp.asarray(rp.starts(np.random.default_rng(0))["zeros"])
+
+    def objective(target, xe):
+        p = eqx.tree_at(lambda p: (p.args["target"], p.args["xe"]), prob, (target, xe))
+        sol = jt.solve(p, ctrl, start, simulator=jt.RK4(fuzz.STEPS))
+        return sol.objective, sol.status
+
+    (J, status), grad = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
+        prob.args["target"], prob.args["xe"]
+    )
+    assert status == jt.Status.SUCCESS and rel_err(J, rp.oracle()[0]) < 1e-9
+    step = 1e-4
+    for name, got in zip(("target", "xe"), grad):
+        fd = np.zeros(rp.args[name].shape)
+        for i in range(fd.size):
+            e = step * np.eye(fd.size)[i]
+            up = dataclasses.replace(rp, args={**rp.args, name: rp.args[name] + e}).oracle()[0]
+            down = dataclasses.replace(rp, args={**rp.args, name: rp.args[name] - e}).oracle()[0]
+            fd[i] = (up - down) / (2 * step)
+        assert got.shape == fd.shape and fd.size and rel_err(got, fd) < 1e-5
+
+
+def test_solve_batch_derivatives_are_the_per_start_ones():
+    """jt.solve_batch is differentiable the same way, lane by lane (the problem, and its
+    tangent, shared): jax.jacfwd and jax.jacrev of the objectives and parameters of 3 starts
+    of the LQ problem with respect to all its arrays equal jt.solve's per-start Jacobian (and
+    NumPy's dJ*/d(target)); jax.grad of their sum is the sum; a start that fails (a NaN row)
+    gets NaN derivatives, the others numbers."""
+    starts = jnp.stack([LQ_START, LQ_START + 0.3, LQ_START - 0.5])
+
+    def batch(theta, a0s=starts):
+        prob, ctrl = lq_problem(theta)
+        sols = jt.solve_batch(prob, ctrl, a0s, simulator=SIM, progress=False, history=False)
+        return sols.objective, sols.params
+
+    fwd = jax.jacfwd(batch)(LQ_THETA)
+    rev = jax.jacrev(batch)(LQ_THETA)
+    one = jax.jit(jax.jacfwd(lambda theta: (lq_solve(theta).objective, lq_solve(theta).params)))(LQ_THETA)
+    for name in LQ_THETA:
+        for got, back, want in zip((fwd[0][name], fwd[1][name]), (rev[0][name], rev[1][name]), one):
+            want = np.broadcast_to(want[name], got.shape)
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(back, got, rtol=1e-10, atol=1e-12)
+    _, _, _, M, r = lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T)
+    assert rel_err(fwd[0]["target"], np.tile(2.0 * (LQ_T / LQ_K) * np.linalg.solve(M, r), (3, 1))) < 1e-7
+    grad = jax.grad(lambda theta: jnp.sum(batch(theta)[0]))(LQ_THETA)
+    assert all(rel_err(grad[name], 3.0 * one[0][name]) < 1e-10 for name in LQ_THETA)
+    failed = starts.at[1].set(jnp.nan)
+    grad = jax.jacfwd(lambda target: batch({**LQ_THETA, "target": target}, failed)[0])(LQ_THETA["target"])
+    with pytest.raises(ValueError, match=r"outside jax\.jit"):
+        jax.jit(batch)(LQ_THETA)
+    assert np.all(np.isnan(grad[1])) and rel_err(grad[np.array([0, 2])], fwd[0]["target"][np.array([0, 2])]) < 1e-10

@@ -156,3 +156,30 @@ def test_report_counts_complementarity_in_its_verdict():
     assert float(report.complementarity) == pytest.approx(1e-7 / np.sqrt(2.0), rel=1e-3)
     assert not report.satisfied(gtol=1e-8) and report.failures(gtol=1e-8)[0].startswith("complementarity")
     assert report.satisfied(gtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_signed_multipliers_are_the_exact_non_negative_least_squares(seed):
+    """min |g + H^T lambda + C_a^T nu| over free lambda and nu >= 0 against SciPy's bounded
+    least squares (`lsq_linear`, an independent solver): the residual agrees to round-off,
+    also at degenerate vertices (more rows than parameters, dependent rows, a gradient in
+    the cone of some of them), where the rounds alone (drop every negative multiplier at
+    once) overstated it: the robot arm's KKT point was rejected (tests/test_user_problems.py)."""
+    import scipy.optimize
+
+    from jaxtraj._kkt import signed_multipliers
+
+    rng = np.random.default_rng(seed)
+    n, m, r = 8, int(rng.integers(0, 3)), int(rng.integers(6, 14))
+    H = rng.standard_normal((m, n))
+    C_a = rng.standard_normal((r, n))
+    C_a[: r // 3] = C_a[r // 3 : 2 * (r // 3)] * rng.uniform(0.5, 2.0, (r // 3, 1))  # dependent pairs
+    nu = np.where(rng.uniform(size=r) < 0.5, rng.uniform(0.1, 2.0, r), 0.0)
+    g = -(H.T @ rng.standard_normal(m) + C_a.T @ nu) + 1e-3 * (seed % 2) * rng.standard_normal(n)
+    keep = rng.uniform(size=r) < 0.9
+    A = np.concatenate([H, C_a[keep]]).T
+    lo = np.concatenate([np.full(m, -np.inf), np.zeros(int(keep.sum()))])
+    exact = scipy.optimize.lsq_linear(A, -g, bounds=(lo, np.inf), lsmr_tol="auto", tol=1e-14, method="bvls")
+    residual, lam = signed_multipliers(jnp.asarray(g), jnp.asarray(H), jnp.asarray(C_a), jnp.asarray(keep))
+    assert np.all(np.asarray(lam)[m:] >= 0.0) and np.all(np.asarray(lam)[m:][~keep] == 0.0)
+    assert abs(float(residual) - np.linalg.norm(A @ exact.x + g)) <= 1e-9 * (1.0 + np.linalg.norm(g))

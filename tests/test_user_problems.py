@@ -37,3 +37,19 @@ def test_default_solver_reaches_the_restricted_optimum_of_a_users_statement(name
     assert jt.status_name(sol.status) == "SUCCESS"
     assert abs(float(sol.objective) - REFERENCE[name]) <= 1e-7 * abs(REFERENCE[name])
     assert jt.kkt_report(prob, ctrl, sol.params, simulator=UP.SIM).satisfied(1e-8, 1e-5)
+
+
+def test_degenerate_vertex_of_the_robot_arm_is_a_kkt_point():
+    """The COPS robot arm (linear pieces): 30 active control bounds and 6 terminal equalities
+    for 34 parameters. The default reached IPOPT's point (same evaluation, parameters within
+    3e-10; IPOPT Solve_Succeeded) by iteration 13 and ended STALLED there: the multiplier
+    rounds (every negative multiplier dropped at once) left a stationarity residual of 9e-2
+    where non-negative least squares (SciPy's `lsq_linear`) gives 7e-16, and both the SUCCESS
+    test and `jt.kkt_report` rejected the KKT point. With Lawson-Hanson after the rounds
+    (`_kkt.signed_multipliers`): SUCCESS at IPOPT's objective."""
+    _, prob, ctrl, a0, _ = next(p for p in UP.problems() if p[0] == "robot-arm")
+    sol = jt.solve(prob, ctrl, a0, simulator=UP.SIM, max_steps=2000)
+    assert jt.status_name(sol.status) == "SUCCESS"
+    assert abs(float(sol.objective) - 9.2843608) <= 1e-7 * 9.2843608  # IPOPT, 2026-12-06
+    report = jt.kkt_report(prob, ctrl, sol.params, simulator=UP.SIM)
+    assert report.satisfied(1e-8, 1e-5)

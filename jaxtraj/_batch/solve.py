@@ -14,6 +14,7 @@ from jax.sharding import Mesh
 from .. import io as _io
 from .._checks import check_problem_and_control
 from .._driver import AbstractSolver
+from .._implicit import ACTIVE_TOL, differentiable_batch
 from .._simulate import RK4, AbstractSimulator, check_simulator
 from .._solution import Solution
 from .._solve import check_solver
@@ -98,6 +99,12 @@ def solve_batch(
     `lanes=1` each start runs the single-solve step, and the results have matched
     `jt.solve`'s to 1e-12 in the tests, but XLA does not promise it.
 
+    **Derivatives.** `jax.grad`, `jax.jvp`, `jax.jacfwd` / `jax.jacrev` (not under `jit` or
+    `vmap`: the batch runs on the host) of the result with respect to the float arrays of
+    `problem` and `control` are `jt.solve`'s, start by start: the implicit function theorem
+    at each start's returned point (`jax.vmap` of the tangent over the starts), NaN for a
+    start that did not end SUCCESS; `a0s` has no derivative. See docs/differentiable.md.
+
     **Raises:** `ValueError` for bad arguments (outside jit), or when `out` holds a run with
     other inputs (`resume=True`) or any run (`resume=False`).
     """
@@ -120,83 +127,90 @@ def solve_batch(
         raise ValueError("`resume=True` needs `out`, the folder of the run to resume.")
     keep_history = history
 
-    num_chunks = -(-n // chunk)
-    padded = -(-chunk // len(devices)) * len(devices)  # rows per compiled call
-    mesh = Mesh(np.array(devices), (AXIS,))
-    writer = jax.process_index() == 0
-    with contextlib.ExitStack() as stack:
-        if out is not None:
-            out = os.fspath(out)
-            manifest = {
-                "format": FORMAT,
-                "num_starts": n,
-                "chunk_size": chunk,
-                "num_chunks": num_chunks,
-                "history": keep_history,
-                "a0s_sha256": fingerprint(a0s),
-                **{
-                    f"{name}_sha256": fingerprint(value)
-                    for name, value in (
-                        ("problem", problem),
-                        ("control", control),
-                        ("solver", solver),
-                        ("simulator", simulator),
-                    )
-                },
-                "max_steps": max_steps,
-                "description": f"{getattr(problem, 'name', 'problem')}, {control!r}, {solver!r}, {simulator!r}, "
-                f"max_steps={max_steps}",
-            }
-            if writer:  # one run at a time in `out`: from the manifest check to the last chunk
-                stack.enter_context(_io.folder_lock(out))
-            prepare_out(out, manifest, resume, writer)
-            run = run_id(manifest)
+    out = None if out is None else os.fspath(out)
 
-        on_disk = {k for k in range(num_chunks) if resume and os.path.exists(chunk_path(out, k))}
-        # the layout of one start's Solution: traced only if a chunk must be read (else taken
-        # from the first solved chunk)
-        treedef, spec = (
-            template(solver, problem, control, control.num_params, simulator, max_steps, keep_history)
-            if on_disk
-            else (None, None)
-        )
-        show = progress and writer
-        if show and on_disk:
-            print(
-                f"solve_batch: resuming {out}: {len(on_disk)}/{num_chunks} chunk(s) already done, loading them",
-                file=sys.stderr,
-                flush=True,
+    def solve_all(problem, control):
+        num_chunks = -(-n // chunk)
+        padded = -(-chunk // len(devices)) * len(devices)  # rows per compiled call
+        mesh = Mesh(np.array(devices), (AXIS,))
+        writer = jax.process_index() == 0
+        with contextlib.ExitStack() as stack:
+            if out is not None:
+                manifest = {
+                    "format": FORMAT,
+                    "num_starts": n,
+                    "chunk_size": chunk,
+                    "num_chunks": num_chunks,
+                    "history": keep_history,
+                    "a0s_sha256": fingerprint(a0s),
+                    **{
+                        f"{name}_sha256": fingerprint(value)
+                        for name, value in (
+                            ("problem", problem),
+                            ("control", control),
+                            ("solver", solver),
+                            ("simulator", simulator),
+                        )
+                    },
+                    "max_steps": max_steps,
+                    "description": f"{getattr(problem, 'name', 'problem')}, {control!r}, {solver!r}, {simulator!r}, "
+                    f"max_steps={max_steps}",
+                }
+                if writer:  # one run at a time in `out`: from the manifest check to the last chunk
+                    stack.enter_context(_io.folder_lock(out))
+                prepare_out(out, manifest, resume, writer)
+                run = run_id(manifest)
+
+            on_disk = {k for k in range(num_chunks) if resume and os.path.exists(chunk_path(out, k))}
+            # the layout of one start's Solution: traced only if a chunk must be read (else taken
+            # from the first solved chunk)
+            treedef, spec = (
+                template(solver, problem, control, control.num_params, simulator, max_steps, keep_history)
+                if on_disk
+                else (None, None)
             )
-        results = None
-        success = solved = 0
-        t_start = time.perf_counter()
-        for k in range(num_chunks):
-            lo, hi = k * chunk, min((k + 1) * chunk, n)
-            if k in on_disk:
-                leaves = read_chunk(out, k, hi - lo, spec, run)
-            else:
-                rows = np.full((padded, control.num_params), np.nan)  # NaN padding ends at once
-                rows[: hi - lo] = a0s[lo:hi]
-                sols = solve_chunk(
-                    solver, problem, control, to_global(rows, mesh), simulator, max_steps, mesh, keep_history, lanes
-                )
-                leaves = [x[: hi - lo] for x in to_host(sols)]
-                treedef = jax.tree.structure(sols)
-                if out is not None and writer:
-                    write_chunk(out, k, leaves, run)
-                solved += hi - lo
-            if results is None:
-                results = [np.empty((n, *x.shape[1:]), x.dtype) for x in leaves]
-            for dst, src in zip(results, leaves):
-                dst[lo:hi] = src
-            success += int(np.sum(np.asarray(jax.tree.unflatten(treedef, leaves).status == Status.SUCCESS)))
-            if show and k not in on_disk:
-                elapsed = time.perf_counter() - t_start
+            show = progress and writer
+            if show and on_disk:
                 print(
-                    f"solve_batch: {hi}/{n} starts (chunk {k + 1}/{num_chunks}) | {elapsed:.1f} s | "
-                    f"{solved / elapsed:.1f} solves/s | success {success}/{hi}",
+                    f"solve_batch: resuming {out}: {len(on_disk)}/{num_chunks} chunk(s) already done, loading them",
                     file=sys.stderr,
                     flush=True,
                 )
-        results.reverse()  # convert leaf by leaf, freeing each host copy (peak: one leaf twice)
-        return jax.tree.unflatten(treedef, [jnp.asarray(results.pop()) for _ in range(len(results))])
+            results = None
+            success = solved = 0
+            t_start = time.perf_counter()
+            for k in range(num_chunks):
+                lo, hi = k * chunk, min((k + 1) * chunk, n)
+                if k in on_disk:
+                    leaves = read_chunk(out, k, hi - lo, spec, run)
+                else:
+                    rows = np.full((padded, control.num_params), np.nan)  # NaN padding ends at once
+                    rows[: hi - lo] = a0s[lo:hi]
+                    sols = solve_chunk(
+                        solver, problem, control, to_global(rows, mesh), simulator, max_steps, mesh, keep_history, lanes
+                    )
+                    leaves = [x[: hi - lo] for x in to_host(sols)]
+                    treedef = jax.tree.structure(sols)
+                    if out is not None and writer:
+                        write_chunk(out, k, leaves, run)
+                    solved += hi - lo
+                if results is None:
+                    results = [np.empty((n, *x.shape[1:]), x.dtype) for x in leaves]
+                for dst, src in zip(results, leaves):
+                    dst[lo:hi] = src
+                success += int(np.sum(np.asarray(jax.tree.unflatten(treedef, leaves).status == Status.SUCCESS)))
+                if show and k not in on_disk:
+                    elapsed = time.perf_counter() - t_start
+                    print(
+                        f"solve_batch: {hi}/{n} starts (chunk {k + 1}/{num_chunks}) | {elapsed:.1f} s | "
+                        f"{solved / elapsed:.1f} solves/s | success {success}/{hi}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+            results.reverse()  # convert leaf by leaf, freeing each host copy (peak: one leaf twice)
+            return jax.tree.unflatten(treedef, [jnp.asarray(results.pop()) for _ in range(len(results))])
+
+    # differentiable in the problem's and control's arrays by the implicit function theorem,
+    # per start (`_implicit.differentiable_batch`); `solve_all` itself runs on the host
+    active_tol = getattr(solver, "path_active", ACTIVE_TOL)
+    return differentiable_batch(solve_all, problem, control, simulator, active_tol)
