@@ -66,6 +66,7 @@ import numpy as np
 
 # jaxtraj sets XLA:CPU options at import; they take effect as it comes before any JAX computation
 import jaxtraj as jt
+from jaxtraj.plot import pyplot
 from jaxtraj.problems import attitude
 
 REPS = attitude.REPRESENTATIONS  # ("quaternion", "euler")
@@ -250,15 +251,6 @@ def verdicts(rows):
 # ---------------------------------------------------------------------------- figures
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _sky(prob, traj):
     """Boresight direction along `traj` as (azimuth around the sun [deg], angle from the sun
     [deg]); azimuth 0 is the start boresight's direction."""
@@ -276,7 +268,7 @@ def _sky(prob, traj):
 
 def sky_figure(path, prob50, cone_deg, curves):
     """`curves`: list of (label, problem, trajectory, line style dict)."""
-    plt = _plt()
+    plt = pyplot()
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5.8), width_ratios=(1, 1.3))
     circle = np.linspace(0, 2 * np.pi, 721)
     rho_c = 2 * np.tan(np.radians(cone_deg) / 2)
@@ -328,7 +320,7 @@ def sky_figure(path, prob50, cone_deg, curves):
 
 def rates_figure(path, prob50, curves):
     """`curves`: list of (label, trajectory, line style dict); torque in mN m, rates in deg/s."""
-    plt = _plt()
+    plt = pyplot()
     tu = float(prob50.args["time_unit"])
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
     for label, traj, style in curves:

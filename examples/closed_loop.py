@@ -103,9 +103,9 @@ def table(open_, closed, P_open, P_closed):
 
 
 def figures(out, open_, closed):
-    from jaxtraj.plot import _plt
+    from jaxtraj.plot import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 1, figsize=(8, 7), sharex=True, height_ratios=(1, 2))
     d = open_.dispersion
     t = np.asarray(d.t) * jt.problems.earth_mars.DAYS_PER_UNIT

@@ -61,6 +61,7 @@ import jaxtraj as jt
 import jaxtraj.problems.solar_sail as ss
 from jaxtraj import metaheuristics as mh
 from jaxtraj.baselines import solve_slsqp
+from jaxtraj.plot import pyplot
 
 TARGETS = ("mars", "venus", "mercury")
 METHODS = {
@@ -442,15 +443,6 @@ def detail_rows(results):
 # ---------------------------------------------------------------------------- figures
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _trajectory(target, ctrl, a, sim):
     traj = jt.simulate(target_problem(target), ctrl, jnp.asarray(a), simulator=sim)
     return np.asarray(traj.t), np.asarray(traj.x), np.degrees(np.asarray(traj.u[:, 0]))
@@ -469,7 +461,7 @@ def _best_of(results, target, kind):
 
 
 def figures(out, target, results, ind, ctrl, sim, weights):
-    plt = _plt()
+    plt = pyplot()
     names = []
     grad, pop = _best_of(results, target, "gradient"), _best_of(results, target, "population")
     ms = [m for m in results if m.target == target]

@@ -67,7 +67,9 @@ class Problem(eqx.Module):
     - `state_names`, `control_names`: labels for reports and plots.
     - `control_lower`, `control_upper`: optional bounds on u, shape `(nu,)`.
     - `state_lower`, `state_upper`: optional bounds on x along the trajectory, shape `(n,)`
-      (or a scalar); +-inf leaves a component free. Imposed as named path constraints.
+      (or a scalar); -inf (lower) or +inf (upper) leaves a component free, the other
+      infinity (no value meets it) is refused, for control bounds too. Imposed as named
+      path constraints.
     - `path`: optional `C(t, x, u, args) -> (q,)` with C <= 0 required along the trajectory.
     - `path_names`: a short name per component of C.
     - `terminal_inequality`: optional `D(tf, xf, args) -> (r,)` with D <= 0 required at tf.
@@ -469,6 +471,9 @@ def _bound(value, nu, name, what="num_controls"):
     b = np.broadcast_to(b, (nu,))
     if np.any(np.isnan(b)):
         raise ValueError(f"`{name}` must not contain NaN; got {b}.")
+    impossible = np.inf if name.endswith("lower") else -np.inf  # no value meets it: never "free"
+    if np.any(b == impossible):
+        raise ValueError(f"`{name}` must not contain {impossible} (no value satisfies it); got {b}.")
     return jnp.asarray(b)
 
 

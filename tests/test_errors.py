@@ -168,6 +168,11 @@ def _energy_problem(**kwargs):
         ({"control_lower": 1.0, "control_upper": -1.0}, r"`control_lower` must be <= `control_upper`"),
         ({"control_upper": [1.0, 2.0]}, r"`control_upper` must be a scalar or have 1 entries .*got shape \(2,\)"),
         ({"control_lower": "low"}, r"`control_lower` must be a number"),
+        # impossible bounds were dropped as "free" and the solve said SUCCESS (issue 51)
+        ({"control_lower": np.inf}, r"`control_lower` must not contain inf"),
+        ({"control_upper": -np.inf}, r"`control_upper` must not contain -inf"),
+        ({"state_upper": -np.inf}, r"`state_upper` must not contain -inf"),
+        ({"state_lower": np.inf}, r"`state_lower` must not contain inf"),
         ({"names": "abc"}, r"`constraint_names` must be a sequence of names, not one string"),
         ({"names": ("a", "b", 3)}, r"`constraint_names` must contain strings"),
         ({"state_names": "xyz"}, r"`state_names` must be a sequence of names"),
