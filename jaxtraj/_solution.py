@@ -121,7 +121,16 @@ class Solution(eqx.Module):
         there (an `Evaluation`; with path constraints, their worst value and its time), and
         `status` if the solver stopped (`done`), else MAX_ITERATIONS; DIVERGED instead of
         either failure when |G| or a parameter is past `DIVERGENCE` (a NONFINITE or SUCCESS
-        status stays). Shared by every solver's `postprocess`."""
+        status stays). A solve that ended NONFINITE without an accepted step has no finite
+        point: its values are NaN (not the zeros of a placeholder evaluation). Shared by
+        every solver's `postprocess`."""
+        final = Status.where(
+            diverged(ev.G, params) & (status != Status.SUCCESS) & (status != Status.NONFINITE),
+            Status.DIVERGED,
+            Status.where(done, status, Status.MAX_ITERATIONS),
+        )
+        blank = (final == Status.NONFINITE) & (iterations == 0)
+        ev = jax.tree.map(lambda x: jnp.where(blank, jnp.nan, x) if jnp.issubdtype(x.dtype, jnp.floating) else x, ev)
         path = {}
         if ev.C is not None:
             worst = jnp.max(ev.C, axis=1)
@@ -138,11 +147,7 @@ class Solution(eqx.Module):
             iterations=iterations,
             integrations=integrations,
             steps=steps,
-            status=Status.where(
-                diverged(ev.G, params) & (status != Status.SUCCESS) & (status != Status.NONFINITE),
-                Status.DIVERGED,
-                Status.where(done, status, Status.MAX_ITERATIONS),
-            ),
+            status=final,
             history=history,
             **path,
         )

@@ -229,3 +229,21 @@ def test_an_unbounded_problem_ends_diverged(solver):
     if isinstance(solver, jt.AugmentedLagrangian):
         n = int(sol.steps)
         assert 1 < n < 300 and float(sol.history.objective[n - 2]) >= -1e20
+
+
+def test_a_start_without_a_finite_point_reports_nan_not_zeros():
+    """A solve that ends NONFINITE before any accepted step (the start's trajectory is NaN)
+    reported tf = 0, objective 0 and max_constraint_error 0, the placeholder evaluation's
+    zeros, and a result file listed nothing as non-finite (issue 51): they are NaN now."""
+    prob = jt.Problem(
+        lambda t, x, u, args: jnp.stack([jnp.sqrt(x[0] - 1.0), u[0]]),
+        [0.0, 0.0],
+        lambda tf, xf, args: xf[1:] - 1.0,
+        ("x2",),
+    )
+    ctrl = jt.controls.PiecewiseConstant(2)
+    for solver in (jt.KalmanSQP(), jt.KalmanSQP(globalization="line-search"), jt.KalmanSearch()):
+        sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.5, 0.5), solver=solver)
+        assert jt.status_name(sol.status) == "NONFINITE"
+        assert np.isnan(float(sol.tf)) and np.isnan(float(sol.objective))
+        assert np.isnan(float(sol.max_constraint_error)) and np.all(np.isnan(np.asarray(sol.constraints)))

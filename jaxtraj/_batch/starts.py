@@ -120,7 +120,12 @@ def random_starts(
     raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
     if not (typed or raw):
         raise ValueError(f"`key` must be a JAX PRNG key (jax.random.key(seed)); got {key!r}.")
-    spread = np.broadcast_to(np.asarray(spread, dtype=np.float64), (control.num_params,))
+    try:
+        spread = np.broadcast_to(np.asarray(spread, dtype=np.float64), (control.num_params,))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"`spread` must be a number or {control.num_params} numbers (one per parameter); got {spread!r}."
+        ) from None
     if not np.all(np.isfinite(spread) & (spread >= 0)):
         raise ValueError(f"`spread` must be >= 0 and finite; got {spread}.")
     redraws = check_int("redraws", redraws, 0)
