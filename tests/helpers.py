@@ -1,5 +1,7 @@
 """Shared test helpers."""
 
+import functools
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -81,16 +83,28 @@ def counting_problem(prob):
     return jt.Problem(counting, prob.x0, prob.terminal, prob.constraint_names, args=prob.args), counter
 
 
-def load_example(name):
-    """Import `examples/<name>.py` as a module (the examples are scripts, not a package)."""
+def load_script(folder, name):
+    """Import `<folder>/<name>.py` (`examples`, `benchmarks`: scripts, not a package) as a
+    module."""
     import importlib.util
     import os
 
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", f"{name}.py")
-    spec = importlib.util.spec_from_file_location(f"{name}_example", path)
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), folder, f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"{name}_{folder}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def load_example(name):
+    """`examples/<name>.py` as a module."""
+    return load_script("examples", name)
+
+
+@functools.cache
+def load_benchmark(name):
+    """`benchmarks/<name>.py` as a module, once per process."""
+    return load_script("benchmarks", name)
 
 
 def energy_problem(**changes):

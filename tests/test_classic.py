@@ -2,17 +2,13 @@
 computations, the restricted optimum by SciPy SLSQP (a second solver on the same
 evaluation) within each problem's gap, and the default solver from the naive start."""
 
-import functools
-import importlib.util
-import pathlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
-from helpers import TRUST_REGION, perturbed_starts
+from helpers import TRUST_REGION, load_benchmark, perturbed_starts
 
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
@@ -39,19 +35,9 @@ def test_hypersensitive_reference_matches_the_indirect_solution():
     assert abs(CLASSIC.hypersensitive_reference() - CLASSIC.HYPERSENSITIVE_REFERENCE) < 1e-7
 
 
-@functools.cache
-def _benchmark(name):
-    """The script benchmarks/<name>.py as a module."""
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _collocation():
     """benchmarks/collocation.py: CasADi Hermite-Simpson collocation, independent of jaxtraj."""
-    return _benchmark("collocation")
+    return load_benchmark("collocation")
 
 
 @pytest.mark.parametrize(
@@ -214,7 +200,7 @@ def test_feasibility_first_reaches_zermelo_from_far_starts():
 def _unseen_problem(name):
     """A problem of benchmarks/unseen.py (problems the solvers were not tuned on): (problem,
     control, start)."""
-    ((prob, family, tf, u),) = [p[1:] for p in _benchmark("unseen").problems() if p[0] == name]
+    ((prob, family, tf, u),) = [p[1:] for p in load_benchmark("unseen").problems() if p[0] == name]
     ctrl = prob.parametrize(family)
     return prob, ctrl, ctrl.initial_guess(tf, u, u)
 
@@ -254,7 +240,7 @@ def test_penalty_cap_follows_progress_on_a_cart_pole_with_the_final_time_as_an_e
     assert ipopt.success
     target = jnp.array([0.0, np.pi, 0.0, 0.0])
     prob = jt.Problem(
-        _benchmark("unseen")._cart_pole,
+        load_benchmark("unseen")._cart_pole,
         np.zeros(4),
         lambda tf, xf, args: jnp.concatenate([xf[:4] - target, jnp.stack([tf - 2.0])]),
         ("x", "theta", "v", "omega", "tf = 2"),

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import rel_err
+from helpers import load_benchmark, rel_err
 from test_compilation import compilations
 
 import jaxtraj as jt
@@ -447,17 +447,6 @@ def test_attitude_slew_in_the_keep_out_half_angle():
     assert rel_err(grad, (up[0] - down[0]) / (2 * step)) < 1e-6
 
 
-def _fuzz():
-    import importlib.util
-    import pathlib
-
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "fuzz.py"
-    spec = importlib.util.spec_from_file_location("fuzz", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("seed", [2, 6, 9, 18])
 def test_random_qp_against_the_oracle(seed):
     """Random convex problems of benchmarks/fuzz.py (3 states, 2 controls, 4 pieces; seed 2:
@@ -471,7 +460,7 @@ def test_random_qp_against_the_oracle(seed):
     the same final state, both active: dependent rows, NaN derivatives by design.)"""
     import dataclasses
 
-    fuzz = _fuzz()
+    fuzz = load_benchmark("fuzz")
     rp = fuzz.make(seed, 3, 2, 4)
     prob, ctrl = rp.problem, rp.control
     start = jnp.asarray(rp.starts(np.random.default_rng(0))["zeros"])

@@ -4,33 +4,20 @@ grid is a convex QP solved by Clarabel (cvxpy). A convex QP has one optimal valu
 SUCCESS anywhere else is a false SUCCESS; and a textbook minimum-time problem whose optimum
 has as many active rows as parameters."""
 
-import functools
-import importlib.util
-import pathlib
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from helpers import LINE_SEARCH, TRUST_REGION, perturbed_starts, reach_problem
+from helpers import LINE_SEARCH, TRUST_REGION, load_benchmark, perturbed_starts, reach_problem
 
 import jaxtraj as jt
-
-
-@functools.cache
-def _fuzz():
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "fuzz.py"
-    spec = importlib.util.spec_from_file_location("fuzz", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_oracle_affine_map_is_rk4_and_converges_to_the_matrix_exponential():
     """The oracle's x(tf) = M a + c: with many RK4 steps it tends to the exact solution of the
     linear system (scipy's matrix exponential, segment by segment), with RK4's h^4 rate; and on
     the solver's grid it equals jaxtraj's own evaluation (the two share only the dynamics)."""
-    fuzz = _fuzz()
+    fuzz = load_benchmark("fuzz")
     rp = fuzz.make(3, n=3, m=2, K=3)
     A, B, x0 = rp.args["A"], rp.args["B"], rp.args["x0"]
     a = np.random.default_rng(0).standard_normal(rp.K * rp.m)
@@ -59,7 +46,7 @@ CASES += [(seed, 5, 3, 3) for seed in range(8, 10)]
 def test_solvers_reach_the_oracle_optimum_of_random_problems(solver):
     """From zeros and from a random start inside the bounds: SUCCESS at the QP's optimal value
     (1e-8 relative) with every constraint met (1e-8), on every problem of the sample."""
-    fuzz = _fuzz()
+    fuzz = load_benchmark("fuzz")
     outcomes = []
     for seed, n, m, K in CASES:
         rp = fuzz.make(seed, n, m, K)
@@ -74,7 +61,7 @@ def test_mixed_oracle_model_is_jaxtraj_evaluation():
     """The `lq-mixed` oracle's model (its own numpy RK4 of the affine map through linear
     pieces, free initial states and design parameters; the running cost in closed form) gives
     jaxtraj's objective, terminal rows, and path and state-bound rows at every grid point."""
-    fuzz = _fuzz()
+    fuzz = load_benchmark("fuzz")
     rp = fuzz.make_mixed(59)  # linear pieces, 2 channels, a design parameter, free states, every row kind
     assert rp.family == "linear" and rp.path and rp.state_upper is not None and len(rp.free) == 3
     a = rp.starts(np.random.default_rng(0))["random"]
@@ -99,7 +86,7 @@ def test_solvers_reach_the_oracle_optimum_of_mixed_problems(solver):
     """Every start of each `lq-mixed` sample problem (zeros, random, the straight line for
     linear pieces): SUCCESS at the QP's optimal value (1e-8 relative) with every constraint
     met (1e-8)."""
-    fuzz = _fuzz()
+    fuzz = load_benchmark("fuzz")
     outcomes = []
     for seed in MIXED:
         rp = fuzz.make_mixed(seed)

@@ -2,23 +2,12 @@
 default solver now solves from the naive start, at the restricted optimum that another solver
 finds on the same evaluation (RK4(20) per segment), with a KKT report that passes."""
 
-import importlib.util
-import pathlib
-
 import pytest
+from helpers import load_benchmark
 
 import jaxtraj as jt
 
-
-def _benchmark():
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "user_problems.py"
-    spec = importlib.util.spec_from_file_location("user_problems", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-UP = _benchmark()
+UP = load_benchmark("user_problems")
 
 # the restricted optimum by another solver from the same start (benchmarks/user_problems.py,
 # 2026-12-06): IPOPT on the tumor, SLSQP on the obstacle, AugmentedLagrangian on the rocket
