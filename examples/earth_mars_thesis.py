@@ -3,8 +3,8 @@ table and the independently computed restricted optima (see `jaxtraj/reproduce.p
 
 Prints a Markdown table, writes it to `OUTDIR/earth-mars-thesis.md` and the seven control
 histories to `OUTDIR/earth-mars-thesis.png`. Run: `python examples/earth_mars_thesis.py
-[OUTDIR]` (a few minutes, most of it compilation and the SLSQP references); the same as
-`jaxtraj reproduce --out OUTDIR`.
+[OUTDIR [CASE ...]]` (all seven: a few minutes, most of it compilation and the SLSQP
+references; e.g. `results 4` solves case 4 alone); the same as `jaxtraj reproduce --out OUTDIR`.
 """
 
 import sys

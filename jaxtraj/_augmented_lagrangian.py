@@ -697,6 +697,7 @@ class AugmentedLagrangian(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
+            control=control,
             projected_gradient=_stationarity(box, state.a, state.grad),
             iterations=state.num_iterations,
             integrations=state.num_integrations,

@@ -1,6 +1,10 @@
 """Input checks of the public entry points (outside jit): float64 mode, problem and control
 types, the parameter vector. Errors name the argument."""
 
+import contextlib
+import os
+import re
+
 import jax
 import jax.numpy as jnp
 
@@ -77,3 +81,55 @@ def check_inputs(problem: Problem, control: AbstractControl, a):
             raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
         return a.astype(jnp.float64)
     return jnp.asarray(control.validate(a))
+
+
+def memory_limit() -> int:
+    """Bytes of memory this process can still take on its first device: the `bytes_limit`
+    less `bytes_in_use` where the device reports them (accelerators), else the machine's
+    available memory (`MemAvailable` of /proc/meminfo, the physical memory where there is
+    none)."""
+    try:
+        stats = jax.local_devices()[0].memory_stats() or {}
+    except jax.errors.JaxRuntimeError:  # a backend that reports none
+        stats = {}
+    if stats.get("bytes_limit"):
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _gb(nbytes) -> str:
+    return f"{nbytes / 1e9:,.1f} GB"
+
+
+def check_memory(argument: str, nbytes: int, what: str):
+    """Raise a ValueError naming `argument` when `what` (its arrays: `nbytes`, a lower bound)
+    cannot fit in `memory_limit()`: refused before the work, with both numbers."""
+    limit = memory_limit()
+    if nbytes > limit:
+        raise ValueError(
+            f"`{argument}`: {what} needs at least {_gb(nbytes)}, more than the {_gb(limit)} of memory available."
+        )
+
+
+@contextlib.contextmanager
+def memory_refusal(what: str, remedy: str):
+    """Turn XLA's RESOURCE_EXHAUSTED (a compiled program that asks for more memory than the
+    device has, before it runs) into a MemoryError that says how much, the limit and what to
+    reduce."""
+    try:
+        yield
+    except jax.errors.JaxRuntimeError as e:
+        if "RESOURCE_EXHAUSTED" not in str(e):
+            raise
+        asked = re.search(r"allocating (\d+) bytes", str(e))
+        asked = f" (one allocation of {_gb(int(asked.group(1)))} failed)" if asked else ""
+        raise MemoryError(
+            f"{what} needs more memory than the {_gb(memory_limit())} available{asked}; {remedy}."
+        ) from None

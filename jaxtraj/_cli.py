@@ -12,6 +12,7 @@ No JAX work at import time; every failure the user can cause ends in a one-line
 import argparse
 import contextlib
 import datetime
+import hashlib
 import importlib
 import importlib.util
 import io as io_module
@@ -55,8 +56,8 @@ def _parser():
     s.add_argument(
         "--tf",
         type=float,
-        default=1.0,
-        help="your own problem: final time of the zero-control start (a problem's final_time wins)",
+        default=None,
+        help="your own problem: final time of the zero-control start (default 1; a problem's final_time wins)",
     )
     s.add_argument(
         "--solver",
@@ -66,7 +67,7 @@ def _parser():
         "sqp-bfgs (KalmanSQP, BFGS, line search)",
     )
     s.add_argument("--starts", type=int, default=1, help="number of starting vectors (vmapped)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the random extra starts")
+    s.add_argument("--seed", type=int, default=None, help="seed of the random extra starts and Monte Carlo runs (0)")
     s.add_argument(
         "--monte-carlo",
         type=int,
@@ -91,7 +92,7 @@ def _parser():
 
 #: Upper limits of the size options, checked before anything is allocated (beyond them
 #: memory or compile time explode; a larger study belongs in Python with jt.solve_batch).
-LIMITS = {"starts": 1_000_000, "steps": 10_000, "max_steps": 1_000_000, "segments": 1_000}
+LIMITS = {"starts": 1_000_000, "steps": 10_000, "max_steps": 1_000_000, "segments": 1_000, "monte_carlo": 1_000_000}
 
 
 def _positive(name, value, limit=None):
@@ -132,6 +133,15 @@ def parse_control(spec):
         return make(*nums)
     except ValueError as e:
         raise _UsageError(f"control spec {spec!r}: {e}") from None
+
+
+def _parametrize(prob, spec):
+    """`prob.parametrize` of the family named by `spec`, its refusal as a usage error."""
+    family = parse_control(spec)
+    try:
+        return prob.parametrize(family)
+    except ValueError as e:
+        raise _UsageError(f"--control {spec}: {e}") from None
 
 
 _SOLVERS = ("kalman", "sqp", "sqp-exact", "sqp-tr", "sqp-bfgs")
@@ -189,7 +199,7 @@ def _setup(problem_name, args):
         entry = _gallery().get(problem_name)
         prob, ctrl, a0 = entry.problem, entry.control, entry.start
         if args.control:
-            ctrl = prob.parametrize(parse_control(args.control))
+            ctrl = _parametrize(prob, args.control)
             tf = float(entry.control.tf(entry.start))  # the naive start's final time
             try:
                 a0 = ctrl.initial_guess(tf, 0.0, 0.0)
@@ -197,7 +207,7 @@ def _setup(problem_name, args):
                 raise _UsageError(f"--control: {e}") from None
         return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "naive start", None
     prob, ctrl, a0 = load_user_problem(problem_name, args)
-    return prob, ctrl, jnp.asarray(a0), jt.KalmanSQP(), args.control or "own start", None
+    return prob, ctrl, a0, jt.KalmanSQP(), args.control or "own start", None  # a0 checked by the caller
 
 
 def _user_function(spec):
@@ -209,13 +219,22 @@ def _user_function(spec):
         if where.endswith(".py"):
             if not os.path.isfile(where):
                 raise _UsageError(f"problem file {where!r} not found")
-            module_spec = importlib.util.spec_from_file_location(f"_jaxtraj_user_{abs(hash(where))}", where)
+            # a module name that is the same in every process (`hash` is salted per process)
+            key = hashlib.sha256(os.path.abspath(where).encode()).hexdigest()[:16]
+            module_spec = importlib.util.spec_from_file_location(f"_jaxtraj_user_{key}", where)
             module = importlib.util.module_from_spec(module_spec)
+            # its own folder on sys.path, as `python file.py` would have it (a problem file
+            # that imports a helper module beside it, at import or in its function)
+            home = os.path.dirname(os.path.abspath(where))
+            if home not in sys.path:
+                sys.path.insert(0, home)
             module_spec.loader.exec_module(module)
         else:
             module = importlib.import_module(where)
     except _UsageError:
         raise
+    except SystemExit as e:  # the module ended the process while importing: nothing was solved
+        raise _UsageError(f"importing {where!r} called sys.exit({e.code!r}); nothing was solved") from None
     except Exception as e:  # the user's module failed to import: say so in one line
         raise _UsageError(f"importing {where!r} failed: {type(e).__name__}: {e}") from None
     fn = getattr(module, name, None)
@@ -231,6 +250,8 @@ def load_user_problem(spec, args):
     fn = _user_function(spec)
     try:
         out = fn()
+    except SystemExit as e:
+        raise _UsageError(f"{spec} called sys.exit({e.code!r}); nothing was solved") from None
     except Exception as e:
         raise _UsageError(f"{spec} raised {type(e).__name__}: {e}") from None
     if isinstance(out, jt.Problem):
@@ -239,13 +260,17 @@ def load_user_problem(spec, args):
         prob, ctrl, a0 = out
     else:
         raise _UsageError(f"{spec} must return a jt.Problem or (problem, control, a0); got {type(out).__name__}")
+    if ctrl is not None and not args.control and args.tf is not None:
+        raise _UsageError(f"--tf: {spec} returns its own start; --tf sets the zero-control start (with --control)")
+    if args.tf is not None and prob.final_time is not None:
+        raise _UsageError(f"--tf: {spec} has a fixed final_time ({float(prob.final_time):g})")
     if ctrl is None or args.control:  # a zero control over [0, --tf]
-        ctrl = prob.parametrize(parse_control(args.control or f"linear:10:{prob.num_controls}"))
+        ctrl = _parametrize(prob, args.control or f"linear:10:{prob.num_controls}")
+        tf = (1.0 if args.tf is None else args.tf) if prob.final_time is None else float(prob.final_time)
         try:
-            tf = args.tf if prob.final_time is None else float(prob.final_time)  # a fixed one wins
-            a0 = ctrl.initial_guess(tf, 0.0, 0.0)
+            a0 = ctrl.validate(ctrl.initial_guess(tf, 0.0, 0.0))
         except ValueError as e:
-            raise _UsageError(f"--tf: {e}") from None
+            raise _UsageError(f"--tf {tf:g}: {e}") from None
     return prob, ctrl, a0
 
 
@@ -258,6 +283,24 @@ def _remove_if_empty(folder):
         os.rmdir(folder)
     except OSError:  # not empty (the results, a batch to resume) or already gone
         pass
+
+
+def _new_folder(base):
+    """The first of `base`, `base-2`, `base-3`, ... that this process creates (two runs
+    started in the same second get a folder each); removed at exit if left empty."""
+    try:
+        os.makedirs(os.path.dirname(base) or ".", exist_ok=True)
+        for k in range(1, 1000):
+            folder = base if k == 1 else f"{base}-{k}"
+            try:
+                os.mkdir(folder)
+            except FileExistsError:
+                continue
+            _HELD.callback(_remove_if_empty, folder)
+            return folder
+    except OSError as e:
+        raise _UsageError(f"cannot create a result folder {base!r} ({e.strerror or e}); pass --out") from None
+    raise _UsageError(f"no free result folder {base}-N; pass --out")
 
 
 def _check_out(folder):
@@ -342,18 +385,29 @@ def _solve(args):
         )
     if args.solver is not None and args.solver not in _SOLVERS:
         raise _UsageError(f"unknown solver {args.solver!r}; available: {', '.join(_SOLVERS)}")
-    if args.monte_carlo < 0:
-        raise _UsageError(f"--monte-carlo must be >= 0; got {args.monte_carlo}")
+    if args.monte_carlo == 1 or not 0 <= args.monte_carlo <= LIMITS["monte_carlo"]:
+        raise _UsageError(
+            f"--monte-carlo must be 0 (none) or 2..{LIMITS['monte_carlo']:,} runs; got {args.monte_carlo:,}"
+        )
+    if args.seed is not None and not 0 <= args.seed < 2**63:
+        raise _UsageError(f"--seed must be in 0..2**63 - 1; got {args.seed}")
     if args.monte_carlo and args.problem != "earth-mars":
         raise _UsageError("--monte-carlo needs thrust errors: earth-mars only")
     for name in ("starts", "steps", "max_steps"):
         _positive(f"--{name.replace('_', '-')}", getattr(args, name), LIMITS[name])
+    if args.resume and args.starts == 1:
+        raise _UsageError("--resume continues a batch of starts (--starts N > 1); one start has nothing to resume")
+    if args.seed is not None and args.starts == 1 and not args.monte_carlo:
+        raise _UsageError("--seed draws the extra starts (--starts N > 1) and the Monte Carlo runs; there are none")
+    args.seed = 0 if args.seed is None else args.seed
+    if args.tf is not None and ":" not in args.problem:
+        raise _UsageError(f"--tf sets the start of your own problem (file.py:function); {args.problem} has its own")
     for name in ("out", "control"):
         if getattr(args, name) == "":
             raise _UsageError(f"--{name} must not be empty")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     slug = args.problem if args.problem in known else args.problem.rpartition(":")[2]
-    out = args.out or os.path.join("results", f"{slug}-{stamp}")
+    out = args.out or _new_folder(os.path.join("results", f"{slug}-{stamp}"))
     _check_out(out)
 
     import jax
@@ -407,6 +461,10 @@ def _solve(args):
                 resume=args.resume,
                 history=False,
             )
+        except OSError as e:  # a full disk while writing a chunk: the chunks written so far are kept
+            raise _UsageError(
+                f"writing to --out {out!r} failed ({e.strerror or e}); --resume continues the run"
+            ) from None
         except ValueError as e:  # the batch folder: another run, changed inputs, a damaged file
             message = str(e).splitlines()[0]
             message = message.replace("pass resume=True", "pass --resume").replace("`resume`", "--resume")
@@ -418,9 +476,12 @@ def _solve(args):
             "the best one again alone, for its history:",
             flush=True,
         )
-    best = jax.block_until_ready(
-        jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps, progress=100)
-    )
+    try:
+        best = jax.block_until_ready(
+            jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps, progress=100)
+        )
+    except ValueError as e:  # what the solver cannot honour (e.g. bounds on a parabolic control)
+        raise _UsageError(f"{args.problem}: {str(e).splitlines()[0]}") from None
     ok_count = int(best.status == jt.Status.SUCCESS) if sols is None else int(ok.sum())
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -436,7 +497,8 @@ def _solve(args):
         ("successful starts", f"{ok_count} / {args.starts}"),
         ("tf", f"{float(best.tf):.8f}"),
         ("objective", f"{float(best.objective):.8f}"),
-        ("max constraint error", f"{float(best.max_constraint_error):.2e}"),
+        ("max violation (all constraints)", f"{float(best.max_violation):.2e}"),
+        ("max |terminal equality|", f"{float(best.max_constraint_error):.2e}"),
     ]
     rows += [(f"  {n}", f"{e:+.2e}") for n, e in zip(prob.constraint_names, np.asarray(best.constraints))]
     rows += [
@@ -464,30 +526,37 @@ def _solve(args):
         "versions": {"jaxtraj": jt.__version__, "jax": jax.__version__, "python": sys.version.split()[0]},
     }
     written = ["summary.json", "arrays.npz"]
-    with io.staged_folder(out, "--out") as stage:  # the files appear together or not at all
-        io.save(stage, prob, best, traj, inputs=inputs, extra={"monte_carlo": summary_mc} if args.monte_carlo else None)
-        if not args.no_plot:
-            written += write_figures(
-                stage,
-                prob,
-                ctrl,
-                best,
-                traj,
-                r_target=r_target,
-                title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}",
+    try:
+        with io.staged_folder(out, "--out") as stage:  # the files appear together or not at all
+            io.save(
+                stage, prob, best, traj, inputs=inputs, extra={"monte_carlo": summary_mc} if args.monte_carlo else None
             )
-            if sols is not None:
-                ok_idx = np.flatnonzero(ok)[:50]
-                trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
-                batch_figure(
-                    os.path.join(stage, "starts.png"),
+            if not args.no_plot:
+                written += write_figures(
+                    stage,
                     prob,
-                    sols.objective,
-                    ok,
-                    trajs,
-                    title=f"{args.problem} ({label}): {args.starts} starts",
+                    ctrl,
+                    best,
+                    traj,
+                    r_target=r_target,
+                    title=f"{args.problem} ({label}): tf = {float(best.tf):.6f}, {jt.status_name(best.status)}",
                 )
-                written.append("starts.png")
+                if sols is not None:
+                    ok_idx = np.flatnonzero(ok)[:50]
+                    trajs = [jt.simulate(prob, ctrl, sols.params[i], simulator=sim) for i in ok_idx]
+                    batch_figure(
+                        os.path.join(stage, "starts.png"),
+                        prob,
+                        sols.objective,
+                        ok,
+                        trajs,
+                        title=f"{args.problem} ({label}): {args.starts} starts",
+                    )
+                    written.append("starts.png")
+    except OSError as e:  # a full disk, a quota: the result is lost, the folder is as it was
+        raise _UsageError(
+            f"writing the results to --out {out!r} failed ({e.strerror or e}); it holds what it held before"
+        ) from None
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1
 
@@ -524,8 +593,8 @@ def main(argv=None):
         if args.command == "solve":
             return _solve(args)
         return _reproduce(args)
-    except _UsageError as e:
-        print(f"jaxtraj: error: {e}", file=sys.stderr)
+    except (_UsageError, MemoryError) as e:  # (MemoryError: jaxtraj's own, with its numbers)
+        print(f"jaxtraj: error: {str(e).splitlines()[0] if str(e) else 'out of memory'}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaxtraj: interrupted", file=sys.stderr)

@@ -49,6 +49,11 @@ class AbstractSolver(eqx.Module):
     def progress(self, state) -> dict:
         """Scalars worth printing during a long solve (name -> array)."""
 
+    def check(self, problem, control) -> None:
+        """Outside jit, before any work: raise a `ValueError` for a declared part of the
+        problem this solver cannot honour with this control (default: none)."""
+        del problem, control
+
 
 def _once(pred, fn, otherwise, operands):
     """`fn(*operands)` if `pred` else `otherwise`: a loop of at most one round. The operands
@@ -140,6 +145,11 @@ def run_loop(solver, problem, control, a0, simulator, max_steps, progress_every=
 def run(solver, problem, control, a0, simulator, max_steps, progress_every=0):
     state = run_loop(solver, problem, control, a0, simulator, max_steps, progress_every)
     return solver.postprocess(problem, control, simulator, state)
+
+
+#: Bytes of one History entry (4 float64 fields and a bool), a lower bound on the memory a
+#: solve's `max_steps` takes (solvers add up to 2 float64 details).
+HISTORY_BYTES = 33
 
 
 def check_max_steps(max_steps):

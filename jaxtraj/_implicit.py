@@ -121,6 +121,7 @@ def solution_values(problem, control, a, simulator):
         "objective": v["G"],
         "constraints": v["E"],
         "max_constraint_error": jnp.max(jnp.abs(v["E"]), initial=0.0),
+        "max_violation": jnp.maximum(jnp.max(jnp.abs(v["E"]), initial=0.0), jnp.max(v["rows"], initial=0.0)),
     }
     if v["D"] is not None:
         out["terminal_inequality"] = v["D"]

@@ -301,8 +301,11 @@ class KalmanSearch(AbstractSolver):
 
     # ------------------------------------------------------------------ state machine
 
-    def init(self, problem, control, a0, simulator, max_steps):
+    def check(self, problem, control):
         require_rows(problem, control, "KalmanSearch")
+
+    def init(self, problem, control, a0, simulator, max_steps):
+        self.check(problem, control)
         # Nothing is integrated here: the first `step` evaluates the start (a pending
         # increment of zero), so the compiled program holds the evaluation kernel once.
         f = jnp.float64
@@ -487,6 +490,7 @@ class KalmanSearch(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
+            control=control,
             projected_gradient=stationarity(state.ev, state.a, state.e_a),
             iterations=state.num_iterations,
             integrations=state.num_integrations,

@@ -212,6 +212,12 @@ class KalmanSQP(AbstractSolver):
             )
         if self.hessian == "exact" and self.method != "forward":
             raise ValueError("KalmanSQP: `hessian='exact'` needs `method='forward'`.")
+        gtols = (self.gtol, self.acceptable_gtol)
+        if all(isinstance(g, int | float) and not isinstance(g, bool) and g > 0 for g in gtols) and gtols[0] > gtols[1]:
+            raise ValueError(
+                f"KalmanSQP: `gtol` = {self.gtol!r} must be <= `acceptable_gtol` = {self.acceptable_gtol!r} "
+                "(what SUCCESS guarantees); pass a larger acceptable_gtol with it."
+            )
         checks = {
             "ctol": lambda: self.ctol > 0,
             "gtol": lambda: self.gtol > 0,
@@ -445,8 +451,11 @@ class KalmanSQP(AbstractSolver):
 
     # ------------------------------------------------------------------ state machine
 
-    def init(self, problem, control, a0, simulator, max_steps):
+    def check(self, problem, control):
         require_rows(problem, control, "KalmanSQP")
+
+    def init(self, problem, control, a0, simulator, max_steps):
+        self.check(problem, control)
         return self.globalization.init(self, problem, control, a0, simulator, max_steps)
 
     def step(self, problem, control, simulator, state):
@@ -464,6 +473,7 @@ class KalmanSQP(AbstractSolver):
         return Solution.from_evaluation(
             state.ev,
             state.a,
+            control=control,
             projected_gradient=kkt_residual(with_knot_gaps(control, state.ev, state.a), state.a, self.path_active),
             iterations=state.num_iterations,
             integrations=state.num_integrations,

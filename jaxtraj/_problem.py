@@ -238,7 +238,8 @@ class Problem(eqx.Module):
         return len(self.constraint_names)
 
     def _check_signatures(self):
-        """Trace each user function once (no FLOPs) and check its output shape."""
+        """Trace each user function once (no FLOPs) and check its output shape and that it is
+        real (a complex or boolean result is refused here, not deep inside a solve)."""
         n, nu = self.num_states, self.num_controls
         t = jax.ShapeDtypeStruct((), jnp.float64)
         x = jax.ShapeDtypeStruct((n,), jnp.float64)
@@ -270,6 +271,8 @@ class Problem(eqx.Module):
                     f"(n={n} states, nu={nu} controls, {self.num_constraints} constraint names); "
                     f"got {getattr(out, 'shape', type(out).__name__)}."
                 )
+            if not (jnp.issubdtype(out.dtype, jnp.floating) or jnp.issubdtype(out.dtype, jnp.integer)):
+                raise ValueError(f"`{label}` must return real numbers; got dtype {out.dtype}.")
 
     @property
     def initial_state_bounds(self) -> tuple[np.ndarray, np.ndarray]:

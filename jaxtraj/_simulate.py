@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._checks import check_inputs, check_problem_and_control
+from ._checks import check_inputs, check_memory, check_problem_and_control, memory_refusal
 from ._problem import Problem
 from ._status import Status, as_indexable
 from .controls import AbstractControl
@@ -38,6 +38,10 @@ class AbstractSimulator(eqx.Module):
     @abc.abstractmethod
     def dense_grid(self) -> np.ndarray:
         """The tau values of the dense output of one segment (including 0 and 1)."""
+
+    def num_dense(self) -> int:
+        """`len(dense_grid())`, without forming the grid."""
+        return len(self.dense_grid())
 
     def integrate_linearized(self, field: Callable, theta, theta_a, x0, x0_a):
         """Integrate `field(theta, tau, x)` over one segment together with dx/da.
@@ -109,6 +113,9 @@ class RK4(AbstractSimulator):
 
     def dense_grid(self):
         return np.linspace(0.0, 1.0, self.steps + 1)
+
+    def num_dense(self):
+        return self.steps + 1
 
     def integrate_linearized(self, field, theta, theta_a, x0, x0_a):
         """Chain the derivative step by step: each RK4 step is differentiated with respect to
@@ -303,4 +310,9 @@ def simulate(problem: Problem, control: AbstractControl, a, *, simulator: Abstra
     """
     a = check_inputs(problem, control, a)
     check_simulator(simulator)
-    return _simulate(problem, control, a, simulator)
+    points = control.num_segments * simulator.num_dense()
+    check_memory(
+        "simulator", 8 * points * (problem.num_states + problem.num_controls + 1), f"{points:,} trajectory points"
+    )
+    with memory_refusal("jt.simulate", "use fewer RK4 steps"):
+        return _simulate(problem, control, a, simulator)

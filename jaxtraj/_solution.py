@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._bounds import knot_gap_rows
 from ._status import Status, as_indexable, diverged
 
 
@@ -65,6 +66,17 @@ class History(eqx.Module):
         return jax.tree.map(lambda h, e: jnp.where(jnp.arange(h.shape[-1]) < steps, h, e), self, unused)
 
 
+def max_violation(ev, control, a):
+    """`Solution.max_violation` at `a` from its evaluation `ev`: max |E| and the positive
+    part of every inequality row (path, terminal, bound rows, knot gaps)."""
+    gaps = knot_gap_rows(control, a)
+    rows = [r.reshape(-1) for r in (ev.C, ev.D, ev.V, None if gaps is None else gaps[0]) if r is not None]
+    worst = jnp.max(jnp.abs(ev.E), initial=0.0)
+    for r in rows:
+        worst = jnp.maximum(worst, jnp.max(r, initial=0.0))
+    return worst
+
+
 class Solution(eqx.Module):
     """Outcome of `jt.solve`. Under `vmap` every field gains a leading batch axis.
 
@@ -72,7 +84,13 @@ class Solution(eqx.Module):
     - `tf`: final time tf(a).
     - `objective`: G at `params`.
     - `constraints`: E = M(tf, x(tf)) at `params` (named by `problem.constraint_names`).
-    - `max_constraint_error`: max |E_i|.
+    - `max_constraint_error`: max |E_i| (the terminal equalities).
+    - `max_violation`: how infeasible `params` is, over every constraint the problem
+      declares: the largest of max |E_i|, the positive part of the terminal inequalities, of
+      the path constraints and state bounds on the grid, of the control and initial-state
+      bounds, and of the knot gaps (segments of negative length); 0 at a feasible point.
+      The per-kind values are `max_constraint_error`, `terminal_inequality`,
+      `max_path_constraint`; `jt.kkt_report` names every row.
     - `iterations`: accepted steps; `integrations`: trajectory integrations (each with
       sensitivities), including rejected candidates and the initial one.
     - `status`: a `jt.Status`; `sol.status == jt.Status.SUCCESS`.
@@ -105,6 +123,7 @@ class Solution(eqx.Module):
     objective: jax.Array
     constraints: jax.Array
     max_constraint_error: jax.Array
+    max_violation: jax.Array
     projected_gradient: jax.Array
     iterations: jax.Array
     integrations: jax.Array
@@ -116,7 +135,9 @@ class Solution(eqx.Module):
     terminal_inequality: jax.Array | None = None
 
     @classmethod
-    def from_evaluation(cls, ev, params, *, projected_gradient, iterations, integrations, steps, done, status, history):
+    def from_evaluation(
+        cls, ev, params, *, control, projected_gradient, iterations, integrations, steps, done, status, history
+    ):
         """A solver's result at its final point: the values of the restricted evaluation `ev`
         there (an `Evaluation`; with path constraints, their worst value and its time), and
         `status` if the solver stopped (`done`), else MAX_ITERATIONS; DIVERGED instead of
@@ -143,6 +164,7 @@ class Solution(eqx.Module):
             objective=ev.G,
             constraints=ev.E,
             max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
+            max_violation=max_violation(ev, control, params),
             projected_gradient=projected_gradient,
             iterations=iterations,
             integrations=integrations,

@@ -4,8 +4,8 @@ the implicit function theorem: `_implicit`)."""
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_inputs, check_problem_and_control
-from ._driver import AbstractSolver, check_max_steps, run
+from ._checks import check_inputs, check_memory, check_problem_and_control, memory_refusal
+from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, run
 from ._implicit import ACTIVE_TOL, differentiable_solve
 from ._kalman_sqp import KalmanSQP
 from ._problem import Problem
@@ -76,6 +76,8 @@ def solve(
     solver, max_steps = check_solver(solver, max_steps)
     a0 = check_start(problem, control, a0)
     check_simulator(simulator)
+    solver.check(problem, control)
+    check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
 
@@ -84,4 +86,5 @@ def solve(
 
     # the activity tolerance of the solver's own KKT test, where it has one
     active_tol = getattr(solver, "path_active", ACTIVE_TOL)
-    return differentiable_solve(solve_from, problem, control, a0, simulator, active_tol)
+    with memory_refusal("jt.solve", "use fewer RK4 steps or segments, or a smaller max_steps"):
+        return differentiable_solve(solve_from, problem, control, a0, simulator, active_tol)

@@ -1,24 +1,25 @@
 """Result folders: `summary.json` (inputs, outputs, status) + `arrays.npz` (parameters,
 dense trajectory, history). A folder is written whole or not at all (`staged_folder`: the
-files go into a temporary folder that is renamed into place), and every file is written
-atomically (temporary file + rename); where an existing folder is updated file by file, the
-summary, written last, carries the checksum of the arrays it belongs to. `load(dir)` gives
+files go into a temporary folder inside it and are moved into place, the summary last, with
+the checksum of the arrays it belongs to), and every file is written atomically (temporary
+file + rename). `load(dir)` gives
 the Solution and Trajectory back, parameters bit for bit, or a ValueError that names the
 damaged file. `folder_lock` keeps two runs out of one folder."""
 
 import contextlib
-import errno
 import hashlib
 import json
 import math
 import os
 import shutil
+import socket
 import tempfile
 import zipfile
 
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import require_float64
 from ._simulate import Trajectory
 from ._solution import History, Solution
 from ._status import STATUS_NAMES, Status, status_name
@@ -81,40 +82,81 @@ def atomic_write(path, write):
         raise
 
 
+#: The hidden list of the entries the last `staged_folder` put in a folder.
+_LISTING = ".jaxtraj-files"
+_PARTIAL = ".partial-"
+
+
+def _remove(path):
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+
+
+def _remove_abandoned_stages(folder):
+    """Remove the temporary folders that a killed process of this machine left in `folder`
+    (named `.partial-<host>-<pid>-...`, their process gone)."""
+    host = socket.gethostname()
+    for entry in os.listdir(folder):
+        parts = entry[len(_PARTIAL) :].split("-") if entry.startswith(_PARTIAL) else []
+        if len(parts) < 3 or "-".join(parts[:-2]) != host or not parts[-2].isdigit():
+            continue
+        try:
+            os.kill(int(parts[-2]), 0)
+        except ProcessLookupError:
+            _remove(os.path.join(folder, entry))
+        except OSError:  # alive (another user's process) or unknowable: keep it
+            pass
+
+
 @contextlib.contextmanager
 def staged_folder(folder, what="`folder`"):
-    """Write a result folder whole or not at all: yields a new temporary folder beside
-    `folder` to write into. When the block ends, the temporary folder becomes `folder` by one
-    rename where `folder` is absent or empty (a reader sees no folder or the whole one), and
-    otherwise its files replace `folder`'s one by one, `summary.json` last (its checksum ties
-    it to its arrays: `load` refuses a mix); other files of `folder` are kept. When the block
-    raises, the temporary folder is deleted and `folder` is untouched.
+    """Write a result folder whole: yields a new temporary folder inside `folder` (created
+    if missing, through a symbolic link as given) to write into. When the block ends, its
+    entries replace `folder`'s one by one, `summary.json` last (its checksum ties it to its
+    arrays: `load` refuses a mix), and the entries of the previous result that this one does
+    not have (a figure it did not draw) are removed; other entries of `folder` (a batch to
+    resume, a user's file) are kept. When the block raises, the temporary folder is deleted
+    and `folder` is untouched (not created, if it was missing). Staging inside `folder` needs nothing of its parent (it may be
+    read-only); a temporary folder left by a killed process is removed by the next write.
 
-    A rename is what the standard library offers for this (`os.rename` over an empty folder
-    is atomic on POSIX); no library writes a folder transactionally.
+    Renames are what the standard library offers for this (`os.replace` within a folder is
+    atomic on POSIX); no library writes a folder transactionally.
 
     **Raises:** `ValueError` naming `what` when `folder` is a file.
     """
     folder = os.path.abspath(os.fspath(folder))
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{what}: {folder!r} is a file, not a folder.")
-    parent, name = os.path.split(folder)
-    os.makedirs(parent, exist_ok=True)
-    stage = tempfile.mkdtemp(dir=parent, prefix=f".{name}.partial-")
+    created = not os.path.lexists(folder)
+    os.makedirs(folder, exist_ok=True)
+    _remove_abandoned_stages(folder)
+    stage = tempfile.mkdtemp(dir=folder, prefix=f"{_PARTIAL}{socket.gethostname()}-{os.getpid()}-")
     try:
         yield stage
-        os.chmod(stage, _usual_mode(0o777))  # mkdtemp creates 0700
+        new = sorted((e for e in os.listdir(stage) if e != _LISTING), key=lambda n: n == "summary.json")
         try:
-            os.rename(stage, folder)
-            return
-        except OSError as e:
-            if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-                raise
-        for entry in sorted(os.listdir(stage), key=lambda n: n == "summary.json"):
-            os.replace(os.path.join(stage, entry), os.path.join(folder, entry))
-        os.rmdir(stage)
+            with open(os.path.join(folder, _LISTING)) as f:
+                old = set(json.load(f))
+        except (OSError, ValueError):
+            old = set()
+        for entry in new:
+            target = os.path.join(folder, entry)
+            if os.path.isdir(target) and not os.path.islink(target):  # a folder is not replaced by a rename
+                shutil.rmtree(target)
+            os.replace(os.path.join(stage, entry), target)
+        for entry in old - set(new):
+            if entry and os.sep not in entry and not entry.startswith("."):
+                _remove(os.path.join(folder, entry))
+        atomic_write(os.path.join(folder, _LISTING), lambda f: f.write(json.dumps(new).encode()))
+        shutil.rmtree(stage)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)  # a failed first write leaves no (empty) folder
         raise
 
 
@@ -150,11 +192,23 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     different saves (an interrupted update of a folder that holds other files too). The
     summary is strict JSON: a non-finite number is `null`, and its name is listed
     under `"nonfinite"`. `extra`: more JSON-able entries for the summary (e.g. the CLI's
-    Monte Carlo results). Returns the summary (a dict).
+    Monte Carlo results; its keys may not replace the summary's own). Returns the summary (a
+    dict).
 
-    **Raises:** `ValueError` naming the entry if `inputs` or `extra` cannot be written as
-    JSON (nothing is written then), or when `folder` is a file.
+    **Raises:** `ValueError` naming the argument when `sol` is not one (unbatched)
+    `jt.Solution`, `traj` not a `jt.Trajectory` of its parameters (another tf), `inputs`
+    or `extra` cannot be written as JSON or `extra` names a key of the summary (nothing is
+    written then), or when `folder` is a file.
     """
+    if not isinstance(sol, Solution) or np.shape(sol.tf) != ():
+        raise ValueError(f"`sol` must be one jt.Solution (a batch's `sols[i]`); got {_describe(sol)}.")
+    if not isinstance(traj, Trajectory) or np.ndim(traj.knots) != 1:
+        raise ValueError(f"`traj` must be one jt.Trajectory (jt.simulate of `sol.params`); got {_describe(traj)}.")
+    if not np.array_equal(np.asarray(traj.knots)[-1:], np.asarray(sol.tf)[None], equal_nan=True):
+        raise ValueError(
+            f"`traj` ends at t = {float(np.asarray(traj.knots)[-1])!r}, `sol` at tf = {float(sol.tf)!r}: "
+            "save the trajectory of `sol.params` (jt.simulate(problem, control, sol.params))."
+        )
     n = int(sol.steps)
     arrays = {
         "params": np.asarray(sol.params),
@@ -172,6 +226,7 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         "tf": float(sol.tf),
         "objective": float(sol.objective),
         "max_constraint_error": float(sol.max_constraint_error),
+        "max_violation": float(sol.max_violation),
         "projected_gradient": float(sol.projected_gradient),
     }
     if sol.max_path_constraint is not None:
@@ -200,8 +255,11 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         "steps": n,
         "params": np.asarray(sol.params).tolist(),
         "nonfinite": [k for k, v in outputs.items() if not math.isfinite(v)],
-        **(extra or {}),
     }
+    clash = sorted(set(extra or {}) & (set(summary) | {"arrays_sha256", "max_path_constraint", "max_path_time"}))
+    if clash:
+        raise ValueError(f"`extra` may not replace the summary's own entries; got {clash}.")
+    summary.update(extra or {})
     for key in ("inputs", *(extra or {})):
         try:
             json.dumps(_jsonable(summary[key]), allow_nan=False)
@@ -217,12 +275,21 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     return summary
 
 
+def _describe(value) -> str:
+    shape = np.shape(getattr(value, "tf", getattr(value, "knots", None)))
+    return f"{type(value).__name__}" + (f" with a batch axis {shape}" if shape else "")
+
+
+def _refuse_constant(token):
+    raise ValueError(f"{token} is not strict JSON")
+
+
 def read_json(path) -> dict:
     """The JSON object in `path`, or a ValueError naming the file ("damaged") when it is not
     one (truncated, empty, not an object)."""
     try:
         with open(path) as f:
-            value = json.load(f)
+            value = json.load(f, parse_constant=_refuse_constant)
         if not isinstance(value, dict):
             raise ValueError("not a JSON object")
     except (ValueError, UnicodeDecodeError) as e:
@@ -240,9 +307,19 @@ def load(folder):
     """`(Solution, Trajectory, summary)` from a folder written by `save` (or the CLI),
     parameters bit for bit and statuses as saved.
 
+    The summary and the arrays are checked against each other before anything is returned:
+    the arrays' checksum (a summary without one is refused), the parameters, constraint and
+    terminal-inequality values written in both, `max_constraint_error` against the
+    constraints, tf against the last knot, the trajectory's shapes and knot order, the step
+    counts against the history's length (iterations <= steps <= integrations); the summary
+    must be strict JSON. A folder written before `max_violation`
+    existed loads with it NaN (unknown).
+
     **Raises:** `ValueError` naming the file and what is wrong when a file is missing,
-    damaged, or `arrays.npz` does not belong to `summary.json`.
+    damaged, or `arrays.npz` does not belong to `summary.json`; `RuntimeError` when JAX's
+    float64 mode is off (as every entry point).
     """
+    require_float64()
     summary_path = os.path.join(folder, "summary.json")
     arrays_path = os.path.join(folder, "arrays.npz")
     for path in (summary_path, arrays_path):
@@ -250,7 +327,12 @@ def load(folder):
             raise ValueError(f"{path}: missing (not a jaxtraj result folder, or an interrupted save).")
     summary = read_json(summary_path)
     expected = summary.get("arrays_sha256")
-    if expected is not None and _sha256(arrays_path) != expected:
+    if not isinstance(expected, str):
+        raise ValueError(
+            f"{summary_path}: `arrays_sha256` is missing, so {arrays_path} cannot be checked against it "
+            "(not written by jaxtraj.io.save, or edited)."
+        )
+    if _sha256(arrays_path) != expected:
         raise ValueError(
             f"{arrays_path}: does not belong to {summary_path} (checksum differs: another or an interrupted save)."
         )
@@ -260,42 +342,108 @@ def load(folder):
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{arrays_path}: damaged ({e}).") from None
 
-    def need(source, key, path):
-        if key not in source:
-            raise ValueError(f"{path}: `{key}` is missing.")
-        value = source[key]
-        return jnp.asarray(jnp.nan if value is None else value)
+    def array(key, ndim, dtype=np.float64):
+        if key not in arrays:
+            raise ValueError(f"{arrays_path}: `{key}` is missing.")
+        value = arrays[key]
+        if value.ndim != ndim or value.dtype != dtype:
+            raise ValueError(
+                f"{arrays_path}: `{key}` must be a {ndim}-d {np.dtype(dtype)} array; got {value.dtype} {value.shape}."
+            )
+        return value
 
-    history = History(
-        **{k: need(arrays, f"history_{k}", arrays_path) for k in _HISTORY_FIELDS},
-        details={k[len(_DETAIL) :]: jnp.asarray(v) for k, v in arrays.items() if k.startswith(_DETAIL)},
-    )
+    def number(key, default=None):
+        if key not in summary and default is None:
+            raise ValueError(f"{summary_path}: `{key}` is missing.")
+        value = summary.get(key, default)
+        if value is None:  # a non-finite number (strict JSON)
+            return np.float64(np.nan)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{summary_path}: `{key}` must be a number; got {value!r}.")
+        return np.float64(value)
+
+    def count(key):
+        value = summary.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**31:
+            raise ValueError(f"{summary_path}: `{key}` must be an int in 0..2**31 - 1; got {value!r}.")
+        return value
+
+    def floats(values):  # JSON numbers (null: non-finite) as float64, else None
+        if not all(v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in values):
+            return None
+        return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+
+    def same(listed, values):
+        listed = floats(listed)
+        return listed is not None and np.array_equal(listed, values, equal_nan=True)
+
+    def contradicts(what, detail):
+        raise ValueError(f"{summary_path}: {what} contradicts {arrays_path} ({detail}; another or an edited save).")
+
+    params, constraints = array("params", 1), array("constraints", 1)
+    listed = summary.get("params")
+    if not isinstance(listed, list) or not same(listed, params):
+        contradicts("`params`", f"{len(params)} parameters there")
+    named = summary.get("constraints")
+    if not isinstance(named, dict) or not same(list(named.values()), constraints):
+        contradicts("`constraints`", f"{len(constraints)} constraint values there")
+    history = {k: array(f"history_{k}", 1, bool if k == "accepted" else np.float64) for k in _HISTORY_FIELDS}
+    details = {k[len(_DETAIL) :]: array(k, 1) for k in arrays if k.startswith(_DETAIL)}
+    steps, iterations, integrations = count("steps"), count("iterations"), count("integrations")
+    lengths = {v.shape[0] for v in (*history.values(), *details.values())}
+    if lengths != {steps}:
+        contradicts(f"`steps` = {steps}", f"history of length {sorted(lengths)}")
+    if not iterations <= steps <= integrations:
+        raise ValueError(
+            f"{summary_path}: the counts contradict each other (iterations {iterations} <= steps {steps} "
+            f"<= integrations {integrations} does not hold; an edited save)."
+        )
+    if not np.array_equal(number("max_constraint_error"), np.max(np.abs(constraints), initial=0.0), equal_nan=True):
+        contradicts("`max_constraint_error`", "max |constraints| there")
+    tf, knots = number("tf"), array("knots", 1)
+    if not knots.size or not np.array_equal(tf, knots[-1], equal_nan=True):
+        contradicts(f"`tf` = {float(tf)!r}", f"last knot {float(knots[-1]) if knots.size else None!r}")
+    if np.any(np.diff(knots) < 0):
+        contradicts("the trajectory", "its knots are out of order")
+    t, x, u, xf = array("t", 1), array("x", 2), array("u", 2), array("xf", 1)
+    if not (t.shape[0] == x.shape[0] == u.shape[0] and x.shape[1] == xf.shape[0]):
+        contradicts("the trajectory", f"t {t.shape}, x {x.shape}, u {u.shape}, xf {xf.shape} do not fit together")
+    terminal_inequality = None
+    if ("terminal_inequality" in arrays) != ("terminal_inequality" in summary):
+        contradicts("`terminal_inequality`", "one file has it, the other not")
+    if "terminal_inequality" in arrays:
+        terminal_inequality = array("terminal_inequality", 1)
+        named = summary["terminal_inequality"]
+        if not isinstance(named, dict) or not same(list(named.values()), terminal_inequality):
+            contradicts("`terminal_inequality`", f"{len(terminal_inequality)} values there")
+        terminal_inequality = jnp.asarray(terminal_inequality)
     sol = Solution(
-        params=need(arrays, "params", arrays_path),
-        tf=need(summary, "tf", summary_path),
-        objective=need(summary, "objective", summary_path),
-        constraints=need(arrays, "constraints", arrays_path),
-        max_constraint_error=need(summary, "max_constraint_error", summary_path),
-        projected_gradient=need(summary, "projected_gradient", summary_path),
-        iterations=need(summary, "iterations", summary_path),
-        integrations=need(summary, "integrations", summary_path),
-        steps=need(summary, "steps", summary_path),
+        params=jnp.asarray(params),
+        tf=jnp.asarray(tf),
+        objective=jnp.asarray(number("objective")),
+        constraints=jnp.asarray(constraints),
+        max_constraint_error=jnp.asarray(number("max_constraint_error")),
+        max_violation=jnp.asarray(number("max_violation", default=np.nan)),
+        projected_gradient=jnp.asarray(number("projected_gradient")),
+        iterations=jnp.asarray(iterations),
+        integrations=jnp.asarray(integrations),
+        steps=jnp.asarray(steps),
         status=_status(summary.get("status"), summary_path, "status"),
-        history=history,
+        history=History(
+            **{k: jnp.asarray(v) for k, v in history.items()}, details={k: jnp.asarray(v) for k, v in details.items()}
+        ),
         max_path_constraint=None
         if "max_path_constraint" not in summary
-        else need(summary, "max_path_constraint", summary_path),
-        max_path_time=None if "max_path_time" not in summary else need(summary, "max_path_time", summary_path),
-        terminal_inequality=None
-        if "terminal_inequality" not in arrays
-        else need(arrays, "terminal_inequality", arrays_path),
+        else jnp.asarray(number("max_path_constraint")),
+        max_path_time=None if "max_path_time" not in summary else jnp.asarray(number("max_path_time")),
+        terminal_inequality=terminal_inequality,
     )
     traj = Trajectory(
-        t=need(arrays, "t", arrays_path),
-        x=need(arrays, "x", arrays_path),
-        u=need(arrays, "u", arrays_path),
-        knots=need(arrays, "knots", arrays_path),
-        xf=need(arrays, "xf", arrays_path),
+        t=jnp.asarray(t),
+        x=jnp.asarray(x),
+        u=jnp.asarray(u),
+        knots=jnp.asarray(knots),
+        xf=jnp.asarray(xf),
         status=_status(summary.get("trajectory_status", "SUCCESS"), summary_path, "trajectory_status"),
     )
     return sol, traj, summary

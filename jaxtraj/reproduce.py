@@ -98,8 +98,16 @@ def figure(rows, path):
     plt.close(fig)
 
 
-def main(outdir="results"):
-    rows = reproduce()
+def main(outdir="results", *cases):
+    """Solve the cases (`cases`: numbers 1..7 as ints or strings; default all seven), print
+    the table and write it and the figure to `outdir`."""
+    try:
+        cases = [int(c) for c in cases] or list(range(1, 8))
+    except ValueError:
+        raise ValueError(f"`cases` must be case numbers 1..7; got {cases!r}.") from None
+    if not set(cases) <= set(range(1, 8)):
+        raise ValueError(f"`cases` must be case numbers 1..7; got {cases!r}.")
+    rows = reproduce(cases)
     table = markdown(rows)
     print()
     print(table)

@@ -23,6 +23,7 @@ from jaxtraj._batch import (
     solve_batch,
     starts as batch_starts,
 )
+from jaxtraj._fingerprint import fingerprint, problem_fingerprint
 
 PROB, CTRL, A0 = jt.problems.earth_mars.thesis_case(4)
 SIM = jt.RK4(20)
@@ -131,7 +132,8 @@ _SHARDED = """
 import json, sys
 import jax, numpy as np
 import jaxtraj as jt
-from jaxtraj._batch import files, solve as batch_solve
+from jaxtraj._batch import solve as batch_solve
+from jaxtraj._fingerprint import fingerprint, problem_fingerprint
 assert len(jax.devices()) == 4, jax.devices()
 used = []
 inner = batch_solve.solve_chunk
@@ -147,7 +149,8 @@ sols = batch_solve.solve_batch(prob, ctrl, starts, jt.KalmanSearch(), simulator=
 np.savez(sys.argv[2], *[np.asarray(x) for x in jax.tree.leaves(sols)])
 print(json.dumps({"devices_per_chunk": used, "steps": np.asarray(sols.steps).tolist(),
                   "status": [jt.status_name(jax.tree.map(lambda x: x[i], sols).status) for i in range(7)],
-                  "fingerprint": files.fingerprint((prob, ctrl, jt.KalmanSearch(), jt.RK4(20), 150))}))
+                  "fingerprint": fingerprint((ctrl, jt.KalmanSearch(), jt.RK4(20), 150)),
+                  "problem": problem_fingerprint(prob, ctrl, jt.RK4(20))}))
 """
 
 
@@ -165,7 +168,8 @@ def test_sharded_over_4_host_devices_equals_unsharded(batch, tmp_path):
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["devices_per_chunk"] == [4, 4]  # 7 starts: chunks of 5 and 2, padded to 8 rows
     # the fingerprint used for resume checks is the same in another process
-    assert report["fingerprint"] == files.fingerprint((PROB, CTRL, SOLVER, SIM, MAX_STEPS))
+    assert report["fingerprint"] == fingerprint((CTRL, SOLVER, SIM, MAX_STEPS))
+    assert report["problem"] == problem_fingerprint(PROB, CTRL, SIM)
     with np.load(tmp_path / "out.npz") as data:
         sharded = [data[f"arr_{i}"] for i in range(len(data.files))]
     # history=False there: the same solution with (N, 0) history fields
@@ -232,11 +236,11 @@ def test_resume_with_other_inputs_is_refused(tmp_path):
         "chunk_size": CHUNK,
         "num_chunks": 2,
         "history": True,
-        "a0s_sha256": files.fingerprint(STARTS),
-        "problem_sha256": files.fingerprint(PROB),
-        "control_sha256": files.fingerprint(CTRL),
-        "solver_sha256": files.fingerprint(SOLVER),
-        "simulator_sha256": files.fingerprint(SIM),
+        "a0s_sha256": fingerprint(STARTS),
+        "problem_sha256": problem_fingerprint(PROB, CTRL, SIM),
+        "control_sha256": fingerprint(CTRL),
+        "solver_sha256": fingerprint(SOLVER),
+        "simulator_sha256": fingerprint(SIM),
         "max_steps": MAX_STEPS,
     }
     with open(os.path.join(out, "manifest.json"), "w") as f:
@@ -254,7 +258,7 @@ def test_resume_with_other_inputs_is_refused(tmp_path):
     other_prob = jt.problems.earth_mars.problem(mu=1.01)
     with pytest.raises(ValueError, match=r"different inputs \(problem changed\)"):
         solve_batch(other_prob, CTRL, STARTS, SOLVER, out=out, resume=True, **KW)
-    with pytest.raises(ValueError, match=r"different inputs \(control changed; simulator changed\)"):
+    with pytest.raises(ValueError, match=r"different inputs \(problem changed; control changed; simulator changed\)"):
         other_ctrl = jt.controls.PiecewiseLinear(3, continuous=False)  # also 7 parameters
         solve_batch(PROB, other_ctrl, STARTS, SOLVER, out=out, resume=True, **{**KW, "simulator": jt.RK4(21)})
     with pytest.raises(ValueError, match=r"already holds a batch run"):
@@ -266,6 +270,45 @@ def test_resume_with_other_inputs_is_refused(tmp_path):
     (tmp_path / "a-file").write_text("x")
     with pytest.raises(ValueError, match=r"is a file, not a folder"):
         solve_batch(PROB, CTRL, STARTS, SOLVER, out=str(tmp_path / "a-file"), **KW)
+
+
+def _reach(target, gain=None):
+    """x'' = u from rest to (target, 0) in time 1, min int u^2 / 2: a new lambda each call;
+    `gain` (a closed-over Python number) changes the dynamics' body."""
+    dynamics = (
+        (lambda t, x, u, args: jnp.stack([x[1], u[0]]))
+        if gain is None
+        else (lambda t, x, u, args: jnp.stack([x[1], gain * u[0]]))
+    )
+    return jt.Problem(
+        dynamics,
+        jnp.zeros(2),
+        lambda tf, xf, args: xf - jnp.array([target, 0.0]),
+        ("x", "v"),
+        num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * u[0] ** 2,
+        final_time=1.0,
+    )
+
+
+def test_resume_checks_what_the_problem_computes(tmp_path, monkeypatch):
+    """Issue 51: the problem is fingerprinted by what it computes, not by its functions' names:
+    a changed lambda body or captured constant is refused, the same problem rebuilt (new
+    function objects) resumes."""
+    out, sim = str(tmp_path / "run"), jt.RK4(4)
+    ctrl = _reach(1.0).parametrize(jt.controls.PiecewiseLinear(2))
+    starts = np.zeros((2, ctrl.num_params))
+    kw = dict(simulator=sim, max_steps=30, chunk_size=1, progress=False)
+    first = solve_batch(_reach(1.0), ctrl, starts, out=out, **kw)
+    assert np.all(np.asarray(first.status == jt.Status.SUCCESS))
+    np.testing.assert_allclose(first.objective, 6.0, rtol=1e-9)  # 6 target^2, PWL is exact here
+    assert len({problem_fingerprint(p, ctrl, sim) for p in (_reach(1.0), _reach(1.5), _reach(1.0, 2.0))}) == 3
+    for other in (_reach(1.5), _reach(1.0, gain=2.0)):  # a factory's constant, a lambda's body
+        with pytest.raises(ValueError, match=r"different inputs \(problem changed\)"):
+            solve_batch(other, ctrl, starts, out=out, resume=True, **kw)
+    monkeypatch.setattr(batch_solve, "solve_chunk", lambda *a: pytest.fail("solved again"))
+    again = solve_batch(_reach(1.0), ctrl, starts, out=out, resume=True, **kw)
+    np.testing.assert_array_equal(again.params, first.params)
 
 
 def test_bad_arguments():

@@ -11,6 +11,7 @@ import jax
 import matplotlib.image
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 import jaxtraj as jt
 from jaxtraj import _cli
@@ -18,8 +19,8 @@ from jaxtraj import _cli
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def run(*args, tmp_path):
-    env = {**os.environ, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": ROOT}
+def run(*args, tmp_path, env=()):
+    env = {**os.environ, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": ROOT, **dict(env)}
     return subprocess.run(
         [sys.executable, "-m", "jaxtraj", *args], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600
     )
@@ -130,7 +131,118 @@ def test_solve_runs_a_users_own_problem_from_a_file(tmp_path, run_here):
     r = run_here("solve", "mine.py:broken", "--out", str(out))
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:broken raised RuntimeError: bad model"
     r = run_here("solve", "mine.py:plane", "--tf", "-2", "--out", str(out))
-    assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --tf: `tf` must be a finite number > 0; got -2.0."
+    assert (
+        r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --tf -2: `tf` must be a finite number > 0; got -2.0."
+    )
+
+
+_REACH_FILE = """
+import jax.numpy as jnp
+import jaxtraj as jt
+
+TARGET = {target}
+
+
+def reach():
+    # x'' = u from rest to (TARGET, 0) in time 1, min int u^2 / 2: J* = 6 TARGET^2
+    return jt.Problem(
+        lambda t, x, u, args: jnp.stack([x[1], u[0]]),
+        jnp.zeros(2),
+        lambda tf, xf, args: xf - jnp.array([TARGET, 0.0]),
+        ("x", "v"),
+        num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * u[0] ** 2,
+        final_time=1.0,
+    )
+"""
+
+
+def test_resume_of_a_users_problem_file(tmp_path, run_here):
+    """Issue 51: --resume of `file.py:function` is accepted in a new process (the module's
+    name no longer follows Python's salted `hash`) and refused once a module constant of
+    the file has changed (the problem is fingerprinted by what it computes)."""
+    mine = tmp_path / "mine.py"
+    mine.write_text(_REACH_FILE.format(target="1.0"))
+    argv = ("solve", "mine.py:reach", "--control", "linear:2", "--steps", "4", "--starts", "2", "--no-plot")
+    argv += ("--out", str(tmp_path / "o"))
+    r = run_here(*argv)
+    assert r.returncode == 0, r.stderr
+    mine.write_text(_REACH_FILE.format(target="1.5"))
+    r = run_here(*argv, "--resume")
+    assert r.returncode == 2 and "different inputs (problem changed)" in r.stderr, r.stderr
+    mine.write_text(_REACH_FILE.format(target="1.0"))
+    r = run(*argv, "--resume", tmp_path=tmp_path, env={"PYTHONHASHSEED": "12345"})
+    assert r.returncode == 0 and "2/2 chunk(s) already done" in r.stderr, r.stderr
+    assert abs(json.loads((tmp_path / "o" / "summary.json").read_text())["objective"] - 6.0) < 1e-9
+
+
+_ODD_FILE = """
+import sys
+import jax.numpy as jnp
+import jaxtraj as jt
+
+
+def base(**kw):
+    return jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[0]]), jnp.zeros(2),
+                      lambda tf, xf, args: xf - jnp.array([1.0, 0.0]), ("x", "v"), num_controls=1, **kw)
+
+
+def text_start():
+    p = base()
+    return p, p.parametrize(jt.controls.PiecewiseLinear(2)), "hello"
+
+
+def complex_dynamics():
+    return jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[0]]) * (1 + 1j), jnp.zeros(2),
+                      lambda tf, xf, args: xf - jnp.array([1.0, 0.0]), ("x", "v"), num_controls=1)
+
+
+def bounded():
+    return base(control_lower=[-1.0], control_upper=[1.0])
+
+
+def fixed_time():
+    return base(running_cost=lambda t, x, u, a: u[0] ** 2, final_time=1.0)
+
+
+def leaves():
+    sys.exit(0)
+"""
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("odd.py:text_start",), "odd.py:text_start: `a` must be a real numeric array"),
+        (("odd.py:complex_dynamics",), "must return real numbers; got dtype complex128"),
+        (("odd.py:bounded", "--control", "parabolic:3"), "PiecewiseParabolic cannot take the problem's control_lower"),
+        (("odd.py:bounded", "--control", "parabolic:3", "--starts", "2"), "so KalmanSQP cannot honor them"),
+        (
+            ("odd.py:fixed_time", "--control", "spline:4:1:-1:1"),
+            "--control spline:4:1:-1:1: `control`: SaturatedSpline",
+        ),
+        (("odd.py:leaves",), "odd.py:leaves called sys.exit(0); nothing was solved"),
+        (("odd.py:fixed_time", "--tf", "2"), "--tf: odd.py:fixed_time has a fixed final_time (1)"),
+        (("odd.py:bounded", "--tf", "1e308"), "--tf 1e+308: `a` must be finite"),
+        (("odd.py:bounded", "--resume"), "--resume continues a batch of starts (--starts N > 1)"),
+        (("odd.py:bounded", "--seed", "3"), "--seed draws the extra starts"),
+        (("sub/uses_helper.py:bounded", "--control", "parabolic:3"), "PiecewiseParabolic cannot take"),
+        (("exits.py:f",), "importing 'exits.py' called sys.exit(0); nothing was solved"),
+    ],
+)
+def test_a_users_odd_problem_gets_one_line(args, message, tmp_path, run_here):
+    """Issue 51: what a user's problem file can get wrong is a one-line error, exit 2, before
+    any work, and leaves no --out folder (it used to be tracebacks, and exit 0 for sys.exit)."""
+    (tmp_path / "odd.py").write_text(_ODD_FILE)
+    (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
+    (tmp_path / "sub").mkdir()  # a problem file that imports a module beside it
+    (tmp_path / "sub" / "helper_mod.py").write_text(_ODD_FILE)
+    (tmp_path / "sub" / "uses_helper.py").write_text("from helper_mod import bounded\n")
+    r = run_here("solve", *args, "--no-plot", "--out", str(tmp_path / "o"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert len(lines) == 1 and lines[0].startswith("jaxtraj: error:") and message in lines[0], r.stderr
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(
@@ -147,6 +259,9 @@ def test_solve_runs_a_users_own_problem_from_a_file(tmp_path, run_here):
         (("solve", "earth-mars", "--control", "linear:100000"), "at most 1,000 segments; got 100,000"),
         (("solve", "earth-mars", "--max-steps", "10000000000"), "--max-steps must be <= 1,000,000"),
         (("solve", "earth-mars", "--control", ""), "--control must not be empty"),
+        (("solve", "earth-mars", "--monte-carlo", "1"), "--monte-carlo must be 0 (none) or 2..1,000,000 runs; got 1"),
+        (("solve", "earth-mars", "--monte-carlo", "1000000000"), "runs; got 1,000,000,000"),
+        (("solve", "earth-mars", "--seed", str(2**70)), "--seed must be in 0..2**63 - 1; got 1180591620717411303424"),
         (("solve", "no_such_file.py:make"), "problem file 'no_such_file.py' not found"),
         (("solve", "no_such_module_xyz:make"), "importing 'no_such_module_xyz' failed: ModuleNotFoundError"),
         (("solve", "json:nothing"), "'json' has no function 'nothing'"),
@@ -306,3 +421,69 @@ def test_a_locked_out_folder_is_refused(tmp_path, run_here):
         r.stderr.strip()
         == f"jaxtraj: error: --out: {str(out)!r} is in use by another run (locked); wait for it to end or choose another folder."
     )
+
+
+@pytest.mark.parametrize("where", ["figures", "chunks"])
+def test_a_full_disk_is_one_line(where, tmp_path, run_here, monkeypatch):
+    """Issue 51: the disk filling up while the figures or the batch chunks are written is a
+    one-line error (it was a raw OSError traceback), and nothing half-written is left."""
+    import jaxtraj.plot
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    if where == "figures":
+        monkeypatch.setattr(jaxtraj.plot, "write_figures", full)
+    else:
+        real = jt.io.atomic_write
+        monkeypatch.setattr(jt.io, "atomic_write", lambda path, fn: full() if "chunk_" in path else real(path, fn))
+    out = tmp_path / "o"
+    argv = ("solve", "min-energy", "--control", "linear:2", "--steps", "4", "--out", str(out))
+    r = run_here(*argv, *(("--no-plot", "--starts", "2") if where == "chunks" else ()))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert lines[-1].startswith("jaxtraj: error: writing") and "No space left on device" in lines[-1], r.stderr
+    assert not (out / "summary.json").exists()
+    assert not list(out.rglob(".*")) if out.exists() else True  # no temporary file or folder
+
+
+_OPTIONS = {  # (valid values, invalid values) for `solve min-energy`
+    "--starts": (["1", "2"], ["0", "-1", "x", "2000000000", ""]),
+    "--steps": (["4"], ["0", "abc", "100000", "4.5"]),
+    "--max-steps": (["50"], ["0", "1e3", "10000000000"]),
+    "--seed": (["0", "7"], ["-1", str(2**70), "s"]),
+    "--monte-carlo": (["0"], ["1", "-3", "1000000000", "2"]),
+    "--control": (["linear:2"], ["", "wiggly:3", "linear:x", "linear:100000", "linear:2:3", "spline:1"]),
+    "--tf": ([], ["-2", "nan", "1.0", "x"]),
+    "--solver": (["sqp", "kalman"], ["magic", ""]),
+}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_any_bad_option_is_one_line(data, tmp_path, run_here):
+    """Issue 51, property: `solve` with any mix of options of which at least one is wrong
+    ends with exit 2 and one line naming an option or value, never a traceback or a run."""
+    names = sorted(_OPTIONS)
+    bad = data.draw(st.sampled_from(names), label="wrong option")
+    argv = [bad, data.draw(st.sampled_from(_OPTIONS[bad][1]), label="wrong value")]
+    for name in data.draw(st.lists(st.sampled_from(names), unique=True, max_size=4), label="others"):
+        if name != bad:
+            argv += [name, data.draw(st.sampled_from(_OPTIONS[name][0] + _OPTIONS[name][1]), label=name)]
+    r = run_here("solve", "min-energy", *argv, "--no-plot", "--out", str(tmp_path / "o"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and "Traceback" not in r.stderr, (argv, r.stderr)
+    assert len(lines) == 1 and lines[0].startswith("jaxtraj: error:"), (argv, r.stderr)
+    assert not (tmp_path / "o").exists()
+
+
+def test_default_result_folders_do_not_collide(tmp_path, monkeypatch):
+    """Two runs started in the same second without --out get a folder each (the second was
+    refused as "in use")."""
+    monkeypatch.chdir(tmp_path)
+    first, second = (_cli._new_folder(os.path.join("results", "p-20261206-120000")) for _ in range(2))
+    assert (first, second) == (
+        os.path.join("results", "p-20261206-120000"),
+        os.path.join("results", "p-20261206-120000-2"),
+    )
+    assert sorted(os.listdir(tmp_path / "results")) == ["p-20261206-120000", "p-20261206-120000-2"]

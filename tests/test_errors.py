@@ -220,3 +220,35 @@ def test_numpy_integers_count_as_ints():
     for bad in (0, 2.0, True, np.float64(3.0)):
         with pytest.raises(ValueError, match="`max_steps` must be an int >= 1"):
             jt.solve(prob, ctrl, a0, max_steps=bad)
+
+
+def test_what_cannot_fit_in_memory_is_refused_before_the_work():
+    """Issue 51: sizes whose arrays alone exceed any machine's memory are refused up front
+    with the number and the limit (they used to end in XLA's RESOURCE_EXHAUSTED, or the
+    process killed for memory); a compiled solve that asks XLA for more than the device has
+    is a MemoryError that says so, not a raw XLA error."""
+    ctrl = C.PiecewiseLinear(3)
+    a0 = ctrl.initial_guess(3.4, 0.0, 0.0)
+    limit = r"more than the [\d,.]+ GB of memory available"
+    with pytest.raises(
+        ValueError, match=r"`max_steps`: the history of 1,000,000,000,000 steps needs at least 33,000\.0 GB, " + limit
+    ):
+        jt.solve(PROB, ctrl, a0, max_steps=10**12)
+    with pytest.raises(ValueError, match=r"`max_steps`: the history of 2 starts x 10,000,000,000,000 steps"):
+        jt.solve_batch(PROB, ctrl, np.stack([a0, a0]), max_steps=10**13, progress=False)
+    with pytest.raises(
+        ValueError, match=r"`n`: 10,000,000,000,000 starts of 5 parameters needs at least 400,000\.0 GB"
+    ):
+        jt.random_starts(PROB, ctrl, jax.random.key(0), 10**13, a0)
+    with pytest.raises(ValueError, match=r"`n`: 1,000,000,000,000 runs"):
+        jt.monte_carlo(PROB, ctrl, a0, jax.random.key(0), 10**12, sigma_thrust=0.01, simulator=jt.RK4(4))
+    with pytest.raises(ValueError, match=r"`simulator`: 30,000,000,003 trajectory points"):
+        jt.simulate(PROB, ctrl, a0, simulator=jt.RK4(10**10))
+    with pytest.raises(MemoryError, match=r"jt.solve needs more memory than the [\d,.]+ GB available \(one allocation"):
+        jt.solve(PROB, ctrl, a0, simulator=jt.RK4(10**10), max_steps=3)
+
+
+def test_gtol_above_acceptable_gtol_names_both():
+    with pytest.raises(ValueError, match=r"`gtol` = 1e-05 must be <= `acceptable_gtol` = 1e-06"):
+        jt.KalmanSQP(gtol=1e-5)
+    assert jt.KalmanSQP(gtol=1e-5, acceptable_gtol=1e-5).gtol == 1e-5

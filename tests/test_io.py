@@ -2,12 +2,20 @@
 silently accepted."""
 
 import json
+import os
+import pathlib
 import shutil
+import socket
+import subprocess
+import sys
+import tempfile
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 import jaxtraj as jt
 
@@ -92,8 +100,44 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         (lambda d: (d / "arrays.npz").unlink(), r"arrays\.npz: missing"),
         (lambda d: _edit(d, lambda s: s.pop("tf")), r"summary\.json: `tf` is missing"),
         (lambda d: _edit(d, lambda s: s.update(status="DONE")), r"`status` is 'DONE', not a jaxtraj status"),
+        # issue 51: a summary that contradicts its arrays, or cannot be checked against them
+        (lambda d: _edit(d, lambda s: s.pop("arrays_sha256")), r"`arrays_sha256` is missing, so .* cannot be checked"),
+        (lambda d: _edit(d, lambda s: s.update(tf=[1.0, 2.0])), r"`tf` must be a number; got \[1\.0, 2\.0\]"),
+        (lambda d: _edit(d, lambda s: s.update(tf=s["tf"] + 1)), r"`tf` = .* contradicts .*last knot"),
+        (lambda d: _edit(d, lambda s: s.update(params=s["params"][:-1])), r"`params` contradicts .*5 parameters"),
+        (
+            lambda d: _edit(d, lambda s: s.update(steps=s["steps"] + 1)),
+            r"`steps` = \d+ contradicts .*history of length",
+        ),
+        (lambda d: _edit(d, lambda s: s.update(iterations=10**6)), r"the counts contradict each other"),
+        (lambda d: _edit(d, lambda s: s.update(constraints={})), r"`constraints` contradicts"),
+        (lambda d: _edit(d, lambda s: s.update(integrations=10**30)), r"`integrations` must be an int in 0\.\.2\*\*31"),
+        (lambda d: _edit(d, lambda s: s.update(max_constraint_error=0.0)), r"`max_constraint_error` contradicts"),
+        (lambda d: _edit(d, lambda s: s.update(tf=None)), r"`tf` = nan contradicts"),
+        (
+            lambda d: (d / "summary.json").write_text('{"tf": NaN}'),
+            r"summary\.json: damaged \(NaN is not strict JSON\)",
+        ),
     ],
-    ids=["truncated-summary", "summary-not-an-object", "garbage-arrays", "no-arrays", "no-tf", "unknown-status"],
+    ids=[
+        "truncated-summary",
+        "summary-not-an-object",
+        "garbage-arrays",
+        "no-arrays",
+        "no-tf",
+        "unknown-status",
+        "no-checksum",
+        "tf-shape",
+        "tf-value",
+        "params-length",
+        "steps",
+        "iterations",
+        "constraints",
+        "huge-count",
+        "max-constraint-error",
+        "tf-null",
+        "nan-literal",
+    ],
 )
 def test_damaged_folders_name_the_file(result, tmp_path, damage, message):
     sol, traj = result
@@ -111,8 +155,8 @@ def _edit(folder, change):
 
 def test_a_folder_is_written_whole_or_not_at_all(result, tmp_path, monkeypatch):
     """A save that fails midway (here: the disk refuses the second file) leaves no folder
-    and no temporary files; a save into a new or empty folder appears by one rename; saving
-    into a folder with other files replaces the result's files and keeps the others."""
+    and no temporary files; saving into a folder with other files replaces the result's
+    files and keeps the others; nothing is ever written beside the folder."""
     sol, traj = result
     target = tmp_path / "run"
     real_write = jt.io.atomic_write
@@ -128,11 +172,8 @@ def test_a_folder_is_written_whole_or_not_at_all(result, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []  # neither the folder nor a leftover temporary one
     monkeypatch.setattr(jt.io, "atomic_write", real_write)
 
-    renames = []
-    real_rename = jt.io.os.rename
-    monkeypatch.setattr(jt.io.os, "rename", lambda a, b: (renames.append(b), real_rename(a, b)))
     jt.io.save(target, PROB, sol, traj)
-    assert renames == [str(target)] and sorted(p.name for p in target.iterdir()) == ["arrays.npz", "summary.json"]
+    assert _visible(target) == ["arrays.npz", "summary.json"]
 
     (target / "notes.txt").write_text("mine")
     other = eqx.tree_at(lambda s: s.params, sol, sol.params + 1.0)
@@ -142,3 +183,124 @@ def test_a_folder_is_written_whole_or_not_at_all(result, tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
     with pytest.raises(ValueError, match=r"`folder`: .* is a file, not a folder"):
         jt.io.save(target / "notes.txt", PROB, sol, traj)
+
+
+def _visible(folder):
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+
+
+def test_out_as_given(result, tmp_path):
+    """Issue 51: a folder reached through a symbolic link is written where the link points;
+    staging happens inside the folder (its parent may be read-only: nothing is written
+    there); a rerun removes the previous result's files it does not write again (no stale
+    figure beside a new summary) and keeps the rest; a temporary folder that a killed
+    process left is removed by the next write, a live process's is not."""
+    sol, traj = result
+    real, link = tmp_path / "real", tmp_path / "link"
+    real.mkdir()
+    link.symlink_to(real, target_is_directory=True)
+    parent_before = sorted(p.name for p in tmp_path.iterdir())
+    with jt.io.staged_folder(link) as stage:
+        assert os.path.dirname(stage) == str(link)
+        jt.io.save(stage, PROB, sol, traj)
+        for name in ("solution.png", "history.png"):
+            (tmp_path / "link" / os.path.basename(stage) / name).write_bytes(b"png")
+        (real / "batch").mkdir()
+        (real / "notes.txt").write_text("mine")
+    assert sorted(p.name for p in tmp_path.iterdir()) == parent_before and link.is_symlink()
+    assert _visible(real) == ["arrays.npz", "batch", "history.png", "notes.txt", "solution.png", "summary.json"]
+    np.testing.assert_array_equal(jt.io.load(link)[0].params, sol.params)
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    (real / f".partial-{host}-{dead.pid}-abc").mkdir()
+    (real / f".partial-{host}-{os.getpid()}-abc").mkdir()
+    with jt.io.staged_folder(link) as stage:
+        jt.io.save(stage, PROB, sol, traj)
+        (pathlib.Path(stage) / "solution.png").write_bytes(b"png2")
+    assert _visible(real) == ["arrays.npz", "batch", "notes.txt", "solution.png", "summary.json"]
+    assert (real / "solution.png").read_bytes() == b"png2"
+    assert sorted(p.name for p in real.iterdir() if p.name.startswith(".partial")) == [
+        f".partial-{host}-{os.getpid()}-abc"
+    ]
+
+
+def test_load_needs_float64(result, tmp_path):
+    """Issue 51: with JAX's float64 mode off, load refuses (as every entry point) instead of
+    returning float32 parameters."""
+    sol, traj = result
+    jt.io.save(tmp_path, PROB, sol, traj)
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(RuntimeError, match="jaxtraj needs float64"):
+            jt.io.load(tmp_path)
+    finally:
+        jax.config.update("jax_enable_x64", True)
+    assert jt.io.load(tmp_path)[0].params.dtype == jnp.float64
+
+
+_JSON = st.recursive(
+    st.none() | st.booleans() | st.integers(-(10**20), 10**20) | st.floats(allow_nan=False) | st.text(max_size=5),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3),
+    max_leaves=6,
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_load_of_a_mutated_folder_refuses_or_agrees(result, data):
+    """Issue 51, property: whatever one entry of summary.json or of arrays.npz is changed to
+    (the arrays' checksum updated, as a forged save would), `load` either raises a
+    ValueError naming the file, or returns a Solution that agrees with the arrays."""
+    sol, traj = result
+    with tempfile.TemporaryDirectory() as folder:
+        summary = jt.io.save(folder, PROB, sol, traj)
+        path = os.path.join(folder, "summary.json")
+        if data.draw(st.booleans(), label="mutate the summary"):
+            key = data.draw(st.sampled_from(sorted(summary)), label="key")
+            if data.draw(st.booleans(), label="delete"):
+                del summary[key]
+            else:
+                summary[key] = data.draw(_JSON, label="value")
+        else:
+            with np.load(os.path.join(folder, "arrays.npz")) as f:
+                arrays = dict(f)
+            key = data.draw(st.sampled_from(sorted(arrays)), label="array")
+            shape = data.draw(st.sampled_from([(), (0,), (2,), (*arrays[key].shape[:1], 1), arrays[key].shape]))
+            dtype = data.draw(st.sampled_from([np.float64, np.float32, np.int64, bool]))
+            arrays[key] = np.ones(shape, dtype)
+            np.savez(os.path.join(folder, "arrays.npz"), **arrays)
+            summary["arrays_sha256"] = jt.io._sha256(os.path.join(folder, "arrays.npz"))
+        with open(path, "w") as f:
+            json.dump(summary, f)
+        try:
+            back, _, _ = jt.io.load(folder)
+        except ValueError as e:
+            assert "summary.json" in str(e) or "arrays.npz" in str(e), e
+            return
+        with np.load(os.path.join(folder, "arrays.npz")) as f:
+            np.testing.assert_array_equal(back.params, f["params"])
+            np.testing.assert_array_equal(back.constraints, f["constraints"])
+            assert int(back.steps) == f["history_objective"].shape[0]
+        assert back.params.dtype == jnp.float64 and back.tf.shape == ()
+
+
+def test_save_refuses_what_load_could_not_trust(result, tmp_path):
+    """Issue 51: `save` refuses a batch, a trajectory of other parameters, and `extra`
+    entries that would replace the summary's own (they made a folder load as SUCCESS with
+    violation 0, or one that `load` then refused): nothing is written."""
+    sol, traj = result
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), sol)
+    with pytest.raises(ValueError, match=r"`sol` must be one jt.Solution .* got Solution with a batch axis \(2,\)"):
+        jt.io.save(tmp_path / "a", PROB, batch, traj)
+    other = jt.simulate(PROB, CTRL, sol.params.at[-1].set(2.0), simulator=SIM)
+    with pytest.raises(ValueError, match=r"`traj` ends at t = 2\.0, `sol` at tf = 1\.0"):
+        jt.io.save(tmp_path / "b", PROB, sol, other)
+    with pytest.raises(
+        ValueError, match=r"`extra` may not replace the summary's own entries; got \['params', 'status'\]"
+    ):
+        jt.io.save(tmp_path / "c", PROB, sol, traj, extra={"status": "SUCCESS", "params": [0], "mine": 1})
+    assert list(tmp_path.iterdir()) == []
+    jt.io.save(tmp_path / "d", PROB, sol, traj, extra={"mine": 1})
+    assert jt.io.load(tmp_path / "d")[2]["mine"] == 1

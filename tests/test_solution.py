@@ -247,3 +247,40 @@ def test_a_start_without_a_finite_point_reports_nan_not_zeros():
         assert jt.status_name(sol.status) == "NONFINITE"
         assert np.isnan(float(sol.tf)) and np.isnan(float(sol.objective))
         assert np.isnan(float(sol.max_constraint_error)) and np.all(np.isnan(np.asarray(sol.constraints)))
+
+
+def _reach_min_time():
+    """x'' = u, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), minimize tf."""
+    return jt.Problem(
+        lambda t, x, u, args: jnp.stack([x[1], u[0]]),
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        num_controls=1,
+        control_lower=[-1.0],
+        control_upper=[1.0],
+        terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
+        terminal_inequality_names=["reach"],
+    )
+
+
+@pytest.mark.parametrize("solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=type)
+def test_max_violation_covers_every_constraint_kind(solver):
+    """Issue 51: `max_violation` says how infeasible the returned point is over every kind
+    (here a terminal inequality violated by 0.5 at (u, tf) = (1, 1): x(1) = 1/2, where
+    `max_constraint_error`, the equalities only, reads 0), and agrees with the KKT report's
+    own row-by-row computation at a solved point with path rows and bounds."""
+    prob = _reach_min_time()
+    ctrl = jt.controls.PiecewiseConstant(1)
+    start = jt.solve(prob, ctrl, np.array([1.0, 1.0]), solver, simulator=jt.RK4(4), max_steps=1)
+    u, tf = np.asarray(start.params)
+    assert float(start.max_constraint_error) == 0.0  # no equalities
+    # x(tf) = u tf^2 / 2 (RK4 is exact on it); the bound rows |u| <= 1
+    np.testing.assert_allclose(start.max_violation, max(1 - u * tf**2 / 2, abs(u) - 1, 0.0), rtol=1e-12)
+    if not isinstance(solver, jt.AugmentedLagrangian):  # (which takes a step at once)
+        np.testing.assert_array_equal(start.params, [1.0, 1.0])  # the start, evaluated
+        np.testing.assert_allclose(start.max_violation, 0.5, rtol=1e-12)
+    entry = jt.problems.classic.get("bryson-denham")
+    sol = jt.solve(entry.problem, entry.control, entry.start, solver, max_steps=500)
+    report = jt.kkt_report(entry.problem, entry.control, sol.params)
+    np.testing.assert_allclose(sol.max_violation, report.max_violation, rtol=1e-9, atol=1e-15)

@@ -20,8 +20,10 @@ How a batch runs:
   both branches. On CPU, XLA's vmapped kernels gain too little over single ones for that
   (benchmarks/RESULTS.md, `benchmarks/batch.py`), so the default there is `lanes=1`; on accelerators it is the whole per-device slice.
 * With `out=FOLDER` each finished chunk is written atomically (`chunk_00000.npz`, ...) next
-  to `manifest.json` (number of starts, chunk size, and SHA-256 fingerprints of `a0s` and of
-  the problem / control / solver / simulator / `max_steps`). `resume=True` loads the chunks
+  to `manifest.json` (number of starts, chunk size, and SHA-256 fingerprints of `a0s`, of
+  what the problem computes (the jaxpr of its functions and the arrays they close over: a
+  changed function body is seen, a renamed one is not), and of the control / solver /
+  simulator / `max_steps`). `resume=True` loads the chunks
   already on disk and solves only the rest; a resume with different inputs is refused. Chunk
   files hold the exact float64 arrays, so a resumed run returns exactly what an
   uninterrupted one does on the same devices (another device count or `lanes` can change

@@ -1,36 +1,17 @@
-"""Result folders of a batch: the run's fingerprint, `manifest.json` and the chunk files,
+"""Result folders of a batch: `manifest.json` and the chunk files,
 written atomically and checked on resume."""
 
 import hashlib
 import json
 import os
-import re
 import zipfile
 
-import jax
 import numpy as np
 
 from .. import io as _io
 
 #: Format tag of `manifest.json`.
 FORMAT = "jaxtraj-batch-2"
-
-
-def fingerprint(tree) -> str:
-    """SHA-256 of a pytree's structure and leaves that is stable across processes: array
-    leaves by dtype, shape and bytes; functions by module and qualified name; others by repr
-    (memory addresses removed)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    h = hashlib.sha256(re.sub(r" at 0x[0-9a-fA-F]+", "", str(treedef)).encode())
-    for leaf in leaves:
-        if isinstance(leaf, (np.ndarray, jax.Array, np.generic)):
-            arr = np.ascontiguousarray(np.asarray(leaf))
-            h.update(f"array {arr.dtype} {arr.shape}".encode() + arr.tobytes())
-        elif callable(leaf) and hasattr(leaf, "__qualname__"):
-            h.update(f"callable {getattr(leaf, '__module__', '?')}.{leaf.__qualname__}".encode())
-        else:
-            h.update(re.sub(r" at 0x[0-9a-fA-F]+", "", repr(leaf)).encode())
-    return h.hexdigest()
 
 
 def chunk_path(out, k):

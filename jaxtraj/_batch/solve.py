@@ -12,15 +12,16 @@ import numpy as np
 from jax.sharding import Mesh
 
 from .. import io as _io
-from .._checks import check_problem_and_control
-from .._driver import AbstractSolver
+from .._checks import check_memory, check_problem_and_control, memory_refusal
+from .._driver import HISTORY_BYTES, AbstractSolver
+from .._fingerprint import fingerprint, problem_fingerprint
 from .._implicit import ACTIVE_TOL, differentiable_batch
 from .._simulate import RK4, AbstractSimulator, check_simulator
 from .._solution import Solution
 from .._solve import check_solver
 from .._status import Status
 from ..controls import AbstractControl
-from .files import FORMAT, chunk_path, fingerprint, prepare_out, read_chunk, run_id, write_chunk
+from .files import FORMAT, chunk_path, prepare_out, read_chunk, run_id, write_chunk
 from .lanes import AXIS, solve_chunk, template, to_global, to_host
 
 
@@ -111,6 +112,7 @@ def solve_batch(
     solver, max_steps = check_solver(solver, max_steps)
     check_problem_and_control(problem, control)
     check_simulator(simulator)
+    solver.check(problem, control)
     a0s = _check_a0s(control, a0s)
     n = a0s.shape[0]
     chunk = min(n, 1024) if chunk_size is None else check_int("chunk_size", chunk_size, 1)
@@ -126,6 +128,8 @@ def solve_batch(
     if resume and out is None:
         raise ValueError("`resume=True` needs `out`, the folder of the run to resume.")
     keep_history = history
+    if history:  # the history of every start comes back: n (N, max_steps) arrays
+        check_memory("max_steps", n * max_steps * HISTORY_BYTES, f"the history of {n:,} starts x {max_steps:,} steps")
 
     out = None if out is None else os.fspath(out)
 
@@ -143,10 +147,11 @@ def solve_batch(
                     "num_chunks": num_chunks,
                     "history": keep_history,
                     "a0s_sha256": fingerprint(a0s),
+                    # the problem by what it computes (its jaxpr and data), not by its functions' names
+                    "problem_sha256": problem_fingerprint(problem, control, simulator),
                     **{
                         f"{name}_sha256": fingerprint(value)
                         for name, value in (
-                            ("problem", problem),
                             ("control", control),
                             ("solver", solver),
                             ("simulator", simulator),
@@ -186,9 +191,20 @@ def solve_batch(
                 else:
                     rows = np.full((padded, control.num_params), np.nan)  # NaN padding ends at once
                     rows[: hi - lo] = a0s[lo:hi]
-                    sols = solve_chunk(
-                        solver, problem, control, to_global(rows, mesh), simulator, max_steps, mesh, keep_history, lanes
-                    )
+                    with memory_refusal(
+                        "jt.solve_batch", "use a smaller chunk_size, fewer RK4 steps or segments, or history=False"
+                    ):
+                        sols = solve_chunk(
+                            solver,
+                            problem,
+                            control,
+                            to_global(rows, mesh),
+                            simulator,
+                            max_steps,
+                            mesh,
+                            keep_history,
+                            lanes,
+                        )
                     leaves = [x[: hi - lo] for x in to_host(sols)]
                     treedef = jax.tree.structure(sols)
                     if out is not None and writer:

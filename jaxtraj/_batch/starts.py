@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_inputs
+from .._checks import check_inputs, check_memory, memory_refusal
 from .._driver import AbstractSolver
 from .._sensitivity import path_values
 from .._simulate import RK4, AbstractSimulator, check_simulator, final_state, simulation_status
@@ -116,6 +116,7 @@ def random_starts(
     """
     around = check_inputs(problem, control, around)
     n = check_int("n", n, 1)
+    check_memory("n", 8 * n * control.num_params, f"{n:,} starts of {control.num_params} parameters")
     typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ()
     raw = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.shape == (2,)
     if not (typed or raw):
@@ -130,18 +131,19 @@ def random_starts(
         raise ValueError(f"`spread` must be >= 0 and finite; got {spread}.")
     redraws = check_int("redraws", redraws, 0)
     check_simulator(simulator)
-    starts = _draw(problem, control, key, n, around, spread)
-    if redraws:
-        bad = ~np.asarray(_usable(problem, control, jnp.asarray(starts), simulator))
-        for r in range(1, redraws + 1):
-            if not bad.any():
-                break
-            more = _draw(problem, control, jax.random.fold_in(key, r), n, around, spread)
-            good = np.flatnonzero(np.asarray(_usable(problem, control, jnp.asarray(more), simulator)))
-            slots = np.flatnonzero(bad)[: good.size]
-            starts[slots] = more[good[: slots.size]]
-            bad[slots] = False
-    return jnp.asarray(starts)
+    with memory_refusal("jt.random_starts", "use a smaller n"):
+        starts = _draw(problem, control, key, n, around, spread)
+        if redraws:
+            bad = ~np.asarray(_usable(problem, control, jnp.asarray(starts), simulator))
+            for r in range(1, redraws + 1):
+                if not bad.any():
+                    break
+                more = _draw(problem, control, jax.random.fold_in(key, r), n, around, spread)
+                good = np.flatnonzero(np.asarray(_usable(problem, control, jnp.asarray(more), simulator)))
+                slots = np.flatnonzero(bad)[: good.size]
+                starts[slots] = more[good[: slots.size]]
+                bad[slots] = False
+        return jnp.asarray(starts)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,7 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float64, check_inputs
+from .._checks import as_float64, check_inputs, check_memory, memory_refusal
 from .._simulate import RK4, simulation_status
 from .._status import Status, as_indexable
 from ._common import check_shape, interp_rows
@@ -116,7 +116,10 @@ def linearize(problem, control, a, *, simulator=RK4(), execution=None) -> Linear
     check_simulator_rk4(simulator)
     execution = check_execution(execution, problem)
     p = execution.num_noise(problem.num_controls)
-    return _linearize(problem, control, a, execution, p, simulator.steps)
+    n, m, N = problem.num_states, problem.num_controls, control.num_segments * simulator.steps
+    check_memory("simulator", 8 * N * 2 * n * (n + m + p), f"the linearization at {N:,} samples")
+    with memory_refusal("jt.linearize", "use fewer RK4 steps"):
+        return _linearize(problem, control, a, execution, p, simulator.steps)
 
 
 @eqx.filter_jit

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float64, check_inputs
+from .._checks import as_float64, check_inputs, check_memory, memory_refusal
 from .._simulate import RK4, simulation_status
 from .._status import Status, as_indexable
 from ._common import check_shape, symmetrize
@@ -250,6 +250,8 @@ def monte_carlo(
             raise ValueError("pass either `execution` or `sigma_thrust` / `sigma_pointing_deg`, not both.")
         execution = ThrustErrors(sigma_thrust, sigma_pointing_deg, thrust_key="thrust" if shorthand[0] else None)
     N, nx, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
+    kept = nx + problem.num_constraints + (nx * (N + 1) if return_trajectories else 0)
+    check_memory("n", 8 * n * kept, f"{n:,} runs ({kept} numbers each)")
     gains = check_gains(gains, N, m, nx)
     noise = _noise_model(problem, execution, process_noise, initial_covariance, correlation_time)
     levels = as_float64(percentiles)
@@ -257,18 +259,19 @@ def monte_carlo(
         raise ValueError(f"`percentiles` must be a 1-d sequence in [0, 100]; got {percentiles!r}.")
     if not (isinstance(dispersion_stride, int) and dispersion_stride >= 1):
         raise ValueError(f"`dispersion_stride` must be an int >= 1; got {dispersion_stride!r}.")
-    return _monte_carlo(
-        problem,
-        control,
-        a,
-        _as_key(key),
-        n,
-        gains,
-        noise,
-        simulator.steps,
-        levels,
-        dispersion_stride if return_trajectories else 0,
-    )
+    with memory_refusal("jt.monte_carlo", "use a smaller n or fewer RK4 steps"):
+        return _monte_carlo(
+            problem,
+            control,
+            a,
+            _as_key(key),
+            n,
+            gains,
+            noise,
+            simulator.steps,
+            levels,
+            dispersion_stride if return_trajectories else 0,
+        )
 
 
 def _masked_stats(values, finite, levels):
