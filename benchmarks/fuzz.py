@@ -171,10 +171,20 @@ class RandomProblem:
         starts = {
             "zeros": np.clip(np.zeros(self.K * self.m), lo, hi),
             "random": lo + (hi - lo) * rng.uniform(size=lo.shape),
+            "outside": outside(lo, hi, rng),
         }
         if self.tf_equality:  # tf as the user knows it, and 20 % off
-            starts = {"zeros": np.append(starts["zeros"], self.T), "random": np.append(starts["random"], 1.2 * self.T)}
+            starts = {k: np.append(v, self.T if k == "zeros" else 1.2 * self.T) for k, v in starts.items()}
         return starts
+
+
+def outside(lo, hi, rng):
+    """A start a user may write that breaks the control bounds: uniform in the box widened
+    by half its width on each side, its first entry past the upper bound."""
+    w = hi - lo
+    a = lo - 0.5 * w + 2.0 * w * rng.uniform(size=lo.shape)
+    a[0] = hi[0] + 0.25 * w[0]
+    return a
 
 
 def rk4_affine(A, B, x0, T, K, m, steps=STEPS, grid=False):
@@ -330,11 +340,13 @@ class MinTimeProblem:
         return hi, None
 
     def starts(self, rng):
-        """The levels at 0 (clipped into the bounds) or random inside them; tf = T or 2 T."""
+        """The levels at 0 (clipped into the bounds), random inside them or outside them
+        (`outside`); tf = T or 2 T."""
         lo, hi = np.tile(self.lower, self.K), np.tile(self.upper, self.K)
         return {
             "zeros": np.append(np.clip(np.zeros(self.K * self.m), lo, hi), self.T),
             "random": np.append(lo + (hi - lo) * rng.uniform(size=lo.shape), 2.0 * self.T),
+            "outside": np.append(outside(lo, hi, rng), 2.0 * self.T),
         }
 
 
@@ -556,6 +568,7 @@ class MixedProblem:
         starts = {
             "zeros": np.append(np.clip(np.zeros(lo.shape), lo, hi), x0),
             "random": np.append(lo + (hi - lo) * rng.uniform(size=lo.shape), x0),
+            "outside": np.append(outside(lo, hi, rng), x0),
         }
         if self.family == "linear":
             w = np.repeat(np.linspace(0.0, 1.0, reps), self.m)

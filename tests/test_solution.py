@@ -249,7 +249,7 @@ def test_a_start_without_a_finite_point_reports_nan_not_zeros():
         assert np.isnan(float(sol.max_constraint_error)) and np.all(np.isnan(np.asarray(sol.constraints)))
 
 
-def _reach_min_time():
+def _reach_min_time(**kw):
     """x'' = u, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), minimize tf."""
     return jt.Problem(
         lambda t, x, u, args: jnp.stack([x[1], u[0]]),
@@ -261,6 +261,7 @@ def _reach_min_time():
         control_upper=[1.0],
         terminal_inequality=lambda tf, xf, args: jnp.array([1.0 - xf[0]]),
         terminal_inequality_names=["reach"],
+        **kw,
     )
 
 
@@ -268,8 +269,7 @@ def _reach_min_time():
 def test_max_violation_covers_every_constraint_kind(solver):
     """Issue 51: `max_violation` says how infeasible the returned point is over every kind
     (here a terminal inequality violated by 0.5 at (u, tf) = (1, 1): x(1) = 1/2, where
-    `max_constraint_error`, the equalities only, reads 0), and agrees with the KKT report's
-    own row-by-row computation at a solved point with path rows and bounds."""
+    `max_constraint_error`, the equalities only, reads 0)."""
     prob = _reach_min_time()
     ctrl = jt.controls.PiecewiseConstant(1)
     start = jt.solve(prob, ctrl, np.array([1.0, 1.0]), solver, simulator=jt.RK4(4), max_steps=1)
@@ -280,7 +280,19 @@ def test_max_violation_covers_every_constraint_kind(solver):
     if not isinstance(solver, jt.AugmentedLagrangian):  # (which takes a step at once)
         np.testing.assert_array_equal(start.params, [1.0, 1.0])  # the start, evaluated
         np.testing.assert_allclose(start.max_violation, 0.5, rtol=1e-12)
-    entry = jt.problems.classic.get("bryson-denham")
-    sol = jt.solve(entry.problem, entry.control, entry.start, solver, max_steps=500)
-    report = jt.kkt_report(entry.problem, entry.control, sol.params)
-    np.testing.assert_allclose(sol.max_violation, report.max_violation, rtol=1e-9, atol=1e-15)
+
+
+def test_max_violation_is_the_kkt_reports():
+    """... and agrees with the KKT report's own row-by-row computation at points with path
+    rows (a speed bound on the grid), bound rows and a terminal inequality, violated or met."""
+    prob = _reach_min_time(state_upper=[jnp.inf, 0.8])
+    ctrl = jt.controls.PiecewiseConstant(3)
+    for a in (ctrl.initial_guess(2.5, 1.2, -0.5), ctrl.initial_guess(0.5, 0.2, 0.2)):
+        sol = jt.solve(prob, ctrl, a, simulator=jt.RK4(4), max_steps=1)
+        report = jt.kkt_report(prob, ctrl, sol.params, simulator=jt.RK4(4))
+        assert float(sol.max_violation) > 0.1
+        np.testing.assert_allclose(sol.max_violation, report.max_violation, rtol=1e-12)
+    sol = jt.solve(prob, ctrl, a, simulator=jt.RK4(4), max_steps=200)
+    report = jt.kkt_report(prob, ctrl, sol.params, simulator=jt.RK4(4))
+    assert sol.status == jt.Status.SUCCESS and float(sol.max_violation) < 1e-8
+    np.testing.assert_allclose(sol.max_violation, report.max_violation, rtol=1e-6, atol=1e-15)
