@@ -86,9 +86,10 @@ def main(argv=None):
         own = f"{(t - solve) / solve:.2f}" if name.startswith("value and") else ""
         print(f"| {name} | {1e3 * t:.1f} | {t / solve:.2f} | {own} |")
     ift_time = rows["value and gradient (8 numbers)"]
+    print()
     for start in ("optimum", "start"):
         fd_time = rows[f"gradient by central differences (16 re-solves from the {start})"]
-        print(f"\ngradient by the IFT vs central differences from the {start}: {fd_time / ift_time:.1f}x faster")
+        print(f"gradient by the IFT vs central differences from the {start}: {fd_time / ift_time:.1f}x faster")
     print(f"largest relative difference between the IFT and the differences: {diff:.1e}")
 
 

@@ -91,7 +91,7 @@ import optax
 
 from ._checks import check_settings
 from ._driver import AbstractSolver
-from ._kkt import inequality_rows, multipliers, parameter_scale
+from ._kkt import ACTIVE_TOL, inequality_rows, multipliers, parameter_scale
 from ._sensitivity import Evaluation, evaluate_jitted
 from ._solution import History, Solution
 from ._status import Status, diverged, failed
@@ -698,6 +698,7 @@ class AugmentedLagrangian(AbstractSolver):
             state.ev,
             state.a,
             control=control,
+            active_tol=ACTIVE_TOL,
             projected_gradient=_stationarity(box, state.a, state.grad),
             iterations=state.num_iterations,
             integrations=state.num_integrations,

@@ -31,14 +31,11 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._bounds import bound_rows, knot_gap_rows
-from ._kkt import parameter_scale, signed_multipliers
+from ._kkt import ACTIVE_TOL, parameter_scale, signed_multipliers, weak_rows
 from ._sensitivity import lagrangian_hessian, path_values
 from ._simulate import RK4, final_state
 from ._status import Status
 
-#: Inequality rows with values >= -ACTIVE_TOL may be active (a solver without its own
-#: activity tolerance; KalmanSQP's `path_active` otherwise, the same default).
-ACTIVE_TOL = 1e-6
 #: Singular values of the unit-scaled active rows below this fraction of the largest make
 #: them dependent (a singular KKT matrix: NaN tangents).
 RANK_TOL = 1e-9
@@ -48,11 +45,6 @@ CURVATURE_TOL = 1e-10
 #: Path rows at one grid point apart whose values and Jacobians agree to this relative
 #: tolerance are one constraint counted twice (`_knot_duplicates`).
 DUPLICATE_TOL = 1e-10
-#: An inequality row within the activity tolerance whose multiplier's share of the
-#: stationarity balance, nu_i |J_i| / (|G_a| + sum_j |lambda_j| |J_j|), is at most this is
-#: weakly active: it does not hold the point and is left out of A (the one-sided derivative
-#: that lets it go; docs/differentiable.md).
-WEAK_TOL = 1e-8
 
 
 def restricted_values(problem, control, a, simulator):
@@ -216,8 +208,7 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
         lam = jnp.zeros(0, a.dtype)
     Jall = jnp.concatenate([H, J])
     norms = jnp.linalg.norm(Jall, axis=1)
-    balance = jnp.linalg.norm(G_a) + jnp.sum(jnp.abs(lam) * norms)
-    active = keep & (lam[m:] * norms[m:] > WEAK_TOL * balance)
+    active = keep & ~weak_rows(G_a, H, J, rows, lam, active_tol)
     lam = lam.at[m:].set(jnp.where(active, lam[m:], 0.0))
     on = jnp.concatenate([jnp.ones(m, bool), active & ~_knot_duplicates(problem, control, simulator, rows, J, active)])
 

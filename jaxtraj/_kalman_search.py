@@ -71,7 +71,7 @@ from ._bounds import require_rows
 from ._checks import check_settings
 from ._driver import AbstractSolver, only_where
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
-from ._kkt import constraint_rows, inequality_rows, stationarity
+from ._kkt import ACTIVE_TOL, constraint_rows, inequality_rows, stationarity
 from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
 from ._solution import History, Solution
 from ._status import Status
@@ -491,6 +491,7 @@ class KalmanSearch(AbstractSolver):
             state.ev,
             state.a,
             control=control,
+            active_tol=ACTIVE_TOL,
             projected_gradient=stationarity(state.ev, state.a, state.e_a),
             iterations=state.num_iterations,
             integrations=state.num_integrations,

@@ -470,11 +470,15 @@ class KalmanSQP(AbstractSolver):
         }
 
     def postprocess(self, problem, control, simulator, state) -> Solution:
+        ev = with_knot_gaps(control, state.ev, state.a)
+        residual, multipliers = kkt_residual(ev, state.a, self.path_active, with_multipliers=True)
         return Solution.from_evaluation(
             state.ev,
             state.a,
             control=control,
-            projected_gradient=kkt_residual(with_knot_gaps(control, state.ev, state.a), state.a, self.path_active),
+            active_tol=self.path_active,
+            multipliers=multipliers,
+            projected_gradient=residual,
             iterations=state.num_iterations,
             integrations=state.num_integrations,
             steps=state.num_steps,

@@ -9,6 +9,15 @@ from jax import lax
 
 from ._bounds import knot_gap_rows
 
+#: Inequality rows with values >= -ACTIVE_TOL may be active (a solver without its own
+#: activity tolerance; KalmanSQP's `path_active` otherwise, the same default).
+ACTIVE_TOL = 1e-6
+#: An inequality row within the activity tolerance whose multiplier's share of the
+#: stationarity balance, nu_i |J_i| / (|G_a| + sum_j |lambda_j| |J_j|), is at most this is
+#: weakly active: it does not hold the point (the solution map may have a kink there; the
+#: implicit function theorem leaves it out of the active set: docs/differentiable.md).
+WEAK_TOL = 1e-8
+
 
 def inequality_rows(ev):
     """The inequality constraints (<= 0) of an `Evaluation` as rows, `(values, Jacobian)`: the
@@ -176,19 +185,20 @@ def stationarity(ev, a, tol):
     return stationarity_multipliers(ev, a, tol)[0]
 
 
-def kkt_residual(ev, a, tol):
+def kkt_residual(ev, a, tol, *, with_multipliers=False):
     """`stationarity`, or the complementarity max_i nu_i max(-C_i, 0) of its multipliers if
     larger: KalmanSQP's SUCCESS test. A row within `tol` of its bound counts as active, and
     with the stationarity residual alone a point that left such a row 1e-7 inside was
     stationary: a vertex optimum (a minimum time with |u| <= 1 and a reach inequality) ended
     SUCCESS 2e-7 from it. nu_i |C_i| bounds what the row still costs the objective (the
-    duality gap of a convex problem), in the objective's units as the stationarity test."""
+    duality gap of a convex problem), in the objective's units as the stationarity test.
+    With `with_multipliers`, `(residual, [lambda; nu])`."""
     residual, lam = stationarity_multipliers(ev, a, tol)
     rows = inequality_rows(ev)
-    if rows is None:
-        return residual
-    nu = lam[ev.E.shape[0] :]
-    return jnp.maximum(residual, jnp.max(nu * jnp.maximum(-rows[0], 0.0), initial=0.0))
+    if rows is not None:
+        nu = lam[ev.E.shape[0] :]
+        residual = jnp.maximum(residual, jnp.max(nu * jnp.maximum(-rows[0], 0.0), initial=0.0))
+    return (residual, lam) if with_multipliers else residual
 
 
 def stationarity_multipliers(ev, a, tol):
@@ -309,3 +319,13 @@ def signed_multipliers(g, H, C_a, keep, exact=True):
 def projected_gradient(G_a, H):
     """|V G_a|, V = I - H^T (H H^T)^-1 H [3.62] (least squares, robust to dependent rows)."""
     return jnp.linalg.norm(G_a + H.T @ multipliers(H, G_a))
+
+
+def weak_rows(G_a, H, J, rows, multipliers, tol):
+    """Per inequality row (values `rows`, Jacobian `J`): within `tol` of active while its
+    multiplier (`multipliers` = [lambda; nu], of `H`'s and `J`'s rows) carries at most
+    `WEAK_TOL` of the stationarity balance: weakly active."""
+    m = H.shape[0]
+    norms = jnp.linalg.norm(jnp.concatenate([H, J]), axis=1)
+    balance = jnp.linalg.norm(G_a) + jnp.sum(jnp.abs(multipliers) * norms)
+    return (rows >= -tol) & ~(multipliers[m:] * norms[m:] > WEAK_TOL * balance)

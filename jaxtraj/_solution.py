@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._bounds import knot_gap_rows
+from ._kkt import inequality_rows, stationarity_multipliers, weak_rows, with_knot_gaps
 from ._status import Status, as_indexable, diverged
 
 
@@ -77,6 +78,18 @@ def max_violation(ev, control, a):
     return worst
 
 
+def weakly_active(ev, control, a, tol, multipliers=None):
+    """`Solution.weakly_active` at `a` from its evaluation `ev` (knot gaps added here) and
+    the multipliers [lambda; nu] of `stationarity_multipliers` (computed if not given)."""
+    ev = with_knot_gaps(control, ev, a)
+    rows = inequality_rows(ev)
+    if rows is None:
+        return jnp.asarray(False)
+    if multipliers is None:
+        _, multipliers = stationarity_multipliers(ev, a, tol)
+    return jnp.any(weak_rows(ev.G_a, ev.H, rows[1], rows[0], multipliers, tol))
+
+
 class Solution(eqx.Module):
     """Outcome of `jt.solve`. Under `vmap` every field gains a leading batch axis.
 
@@ -85,6 +98,11 @@ class Solution(eqx.Module):
     - `objective`: G at `params`.
     - `constraints`: E = M(tf, x(tf)) at `params` (named by `problem.constraint_names`).
     - `max_constraint_error`: max |E_i| (the terminal equalities).
+    - `weakly_active`: whether an inequality row (path point, terminal inequality, bound,
+      knot gap) is active within the solver's activity tolerance while its multiplier is
+      about zero (`_kkt.WEAK_TOL` of the stationarity balance): the optimum as a function of
+      the problem's data may have a kink there, and its derivative (docs/differentiable.md)
+      is the one-sided one that lets the row go.
     - `max_violation`: how infeasible `params` is, over every constraint the problem
       declares: the largest of max |E_i|, the positive part of the terminal inequalities, of
       the path constraints and state bounds on the grid, of the control and initial-state
@@ -124,6 +142,7 @@ class Solution(eqx.Module):
     constraints: jax.Array
     max_constraint_error: jax.Array
     max_violation: jax.Array
+    weakly_active: jax.Array
     projected_gradient: jax.Array
     iterations: jax.Array
     integrations: jax.Array
@@ -136,7 +155,20 @@ class Solution(eqx.Module):
 
     @classmethod
     def from_evaluation(
-        cls, ev, params, *, control, projected_gradient, iterations, integrations, steps, done, status, history
+        cls,
+        ev,
+        params,
+        *,
+        control,
+        active_tol,
+        projected_gradient,
+        iterations,
+        integrations,
+        steps,
+        done,
+        status,
+        history,
+        multipliers=None,
     ):
         """A solver's result at its final point: the values of the restricted evaluation `ev`
         there (an `Evaluation`; with path constraints, their worst value and its time), and
@@ -165,6 +197,7 @@ class Solution(eqx.Module):
             constraints=ev.E,
             max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
             max_violation=max_violation(ev, control, params),
+            weakly_active=weakly_active(ev, control, params, active_tol, multipliers),
             projected_gradient=projected_gradient,
             iterations=iterations,
             integrations=integrations,

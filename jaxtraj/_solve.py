@@ -6,8 +6,9 @@ import jax.numpy as jnp
 
 from ._checks import check_inputs, check_memory, check_problem_and_control, memory_refusal
 from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, run
-from ._implicit import ACTIVE_TOL, differentiable_solve
+from ._implicit import differentiable_solve
 from ._kalman_sqp import KalmanSQP
+from ._kkt import ACTIVE_TOL
 from ._problem import Problem
 from ._simulate import RK4, AbstractSimulator, check_simulator
 from ._solution import Solution

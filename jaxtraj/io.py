@@ -250,6 +250,7 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
                 }
             }
         ),
+        "weakly_active": bool(sol.weakly_active),
         "iterations": int(sol.iterations),
         "integrations": int(sol.integrations),
         "steps": n,
@@ -312,8 +313,8 @@ def load(folder):
     terminal-inequality values written in both, `max_constraint_error` against the
     constraints, tf against the last knot, the trajectory's shapes and knot order, the step
     counts against the history's length (iterations <= steps <= integrations); the summary
-    must be strict JSON. A folder written before `max_violation`
-    existed loads with it NaN (unknown).
+    must be strict JSON. A folder written before `max_violation` and `weakly_active` existed
+    loads with them NaN (unknown) and False.
 
     **Raises:** `ValueError` naming the file and what is wrong when a file is missing,
     damaged, or `arrays.npz` does not belong to `summary.json`; `RuntimeError` when JAX's
@@ -368,6 +369,12 @@ def load(folder):
             raise ValueError(f"{summary_path}: `{key}` must be an int in 0..2**31 - 1; got {value!r}.")
         return value
 
+    def flag(key):  # (False in folders saved before the flag existed)
+        value = summary.get(key, False)
+        if not isinstance(value, bool):
+            raise ValueError(f"{summary_path}: `{key}` must be true or false; got {value!r}.")
+        return value
+
     def floats(values):  # JSON numbers (null: non-finite) as float64, else None
         if not all(v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in values):
             return None
@@ -405,6 +412,8 @@ def load(folder):
         contradicts(f"`tf` = {float(tf)!r}", f"last knot {float(knots[-1]) if knots.size else None!r}")
     if np.any(np.diff(knots) < 0):
         contradicts("the trajectory", "its knots are out of order")
+    if np.any(np.diff(array("t", 1)) < 0):
+        contradicts("the trajectory", "its times are out of order")
     t, x, u, xf = array("t", 1), array("x", 2), array("u", 2), array("xf", 1)
     if not (t.shape[0] == x.shape[0] == u.shape[0] and x.shape[1] == xf.shape[0]):
         contradicts("the trajectory", f"t {t.shape}, x {x.shape}, u {u.shape}, xf {xf.shape} do not fit together")
@@ -417,14 +426,27 @@ def load(folder):
         if not isinstance(named, dict) or not same(list(named.values()), terminal_inequality):
             contradicts("`terminal_inequality`", f"{len(terminal_inequality)} values there")
         terminal_inequality = jnp.asarray(terminal_inequality)
+    # the summary's own numbers: max_violation is the largest of its parts, a norm is >= 0
+    max_violation, projected_gradient = number("max_violation", default=np.nan), number("projected_gradient")
+    parts = [number("max_constraint_error"), 0.0]
+    parts += [] if terminal_inequality is None else list(np.asarray(terminal_inequality))
+    parts += [number("max_path_constraint")] if "max_path_constraint" in summary else []
+    if np.isfinite(max_violation) and not max_violation >= np.nanmax(parts):
+        raise ValueError(
+            f"{summary_path}: `max_violation` = {float(max_violation)!r} is below one of its parts "
+            f"(the largest: {float(np.nanmax(parts))!r}; an edited save)."
+        )
+    if projected_gradient < 0:
+        raise ValueError(f"{summary_path}: `projected_gradient` is a norm; got {float(projected_gradient)!r}.")
     sol = Solution(
         params=jnp.asarray(params),
         tf=jnp.asarray(tf),
         objective=jnp.asarray(number("objective")),
         constraints=jnp.asarray(constraints),
         max_constraint_error=jnp.asarray(number("max_constraint_error")),
-        max_violation=jnp.asarray(number("max_violation", default=np.nan)),
-        projected_gradient=jnp.asarray(number("projected_gradient")),
+        max_violation=jnp.asarray(max_violation),
+        weakly_active=jnp.asarray(flag("weakly_active")),
+        projected_gradient=jnp.asarray(projected_gradient),
         iterations=jnp.asarray(iterations),
         integrations=jnp.asarray(integrations),
         steps=jnp.asarray(steps),

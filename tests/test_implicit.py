@@ -256,12 +256,20 @@ def test_unsuccessful_or_singular_solves_give_nan():
 
 def test_weakly_active_row_is_reported_and_let_go():
     """A bound met exactly at the unconstrained optimum (tf <= tf*, multiplier 0) is weakly
-    active: `kkt_point` reports it, and the derivative is the one-sided one that lets it go
-    (the unbounded problem's dtf*/dd = 1 / sqrt(d g))."""
+    active: `kkt_point` reports it, so does the Solution's flag (for every solver; and not
+    with the bound 10 % looser, nor at the bang-bang vertex whose bound rows all carry
+    multipliers), and the derivative is the one-sided one that lets it go (the unbounded
+    problem's dtf*/dd = 1 / sqrt(d g))."""
     d, g = 1.5, 0.8
     prob = min_time_problem(d, g, tf_bounds=(0.0, 2 * np.sqrt(d / g)))
     sol = jt.solve(prob, MT_CONTROL, MT_START, simulator=SIM)
-    assert sol.status == jt.Status.SUCCESS
+    assert sol.status == jt.Status.SUCCESS and bool(sol.weakly_active)
+    for solver in (jt.KalmanSearch(), jt.AugmentedLagrangian()):
+        other = jt.solve(prob, MT_CONTROL, MT_START, solver, simulator=SIM, max_steps=2000)
+        assert other.status == jt.Status.SUCCESS and bool(other.weakly_active), type(solver)
+    loose = min_time_problem(d, g, tf_bounds=(0.0, 2.2 * np.sqrt(d / g)))
+    assert not bool(jt.solve(loose, MT_CONTROL, MT_START, simulator=SIM).weakly_active)
+    assert not bool(jt.solve(MT, MT_CONTROL, MT_START, simulator=SIM).weakly_active)
     point = kkt_point(prob, MT_CONTROL, sol, SIM)
     assert point.differentiable and point.weakly_active[0] and np.sum(point.weakly_active) == 1
     grad = jax.grad(lambda args: min_time(args, problem=prob))(dict(prob.args))

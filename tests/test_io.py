@@ -118,6 +118,11 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
             lambda d: (d / "summary.json").write_text('{"tf": NaN}'),
             r"summary\.json: damaged \(NaN is not strict JSON\)",
         ),
+        (
+            lambda d: _edit(d, lambda s: s.update(max_violation=-1.0)),
+            r"`max_violation` = -1\.0 is below one of its parts",
+        ),
+        (lambda d: _edit(d, lambda s: s.update(projected_gradient=-1)), r"`projected_gradient` is a norm; got -1\.0"),
     ],
     ids=[
         "truncated-summary",
@@ -137,6 +142,8 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         "max-constraint-error",
         "tf-null",
         "nan-literal",
+        "max-violation",
+        "negative-norm",
     ],
 )
 def test_damaged_folders_name_the_file(result, tmp_path, damage, message):

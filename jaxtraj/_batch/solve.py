@@ -15,7 +15,8 @@ from .. import io as _io
 from .._checks import check_memory, check_problem_and_control, memory_refusal
 from .._driver import HISTORY_BYTES, AbstractSolver
 from .._fingerprint import fingerprint, problem_fingerprint
-from .._implicit import ACTIVE_TOL, differentiable_batch
+from .._implicit import differentiable_batch
+from .._kkt import ACTIVE_TOL
 from .._simulate import RK4, AbstractSimulator, check_simulator
 from .._solution import Solution
 from .._solve import check_solver
