@@ -4,8 +4,9 @@ with every solver, against the problem's independent reference optimum.
 Per problem and solver: status, objective, gap to the reference (objective - reference; the
 continuous optimum, so a restricted control may sit above it by up to the problem's `gap`),
 whether the run is "at the reference" (SUCCESS and -tol <= gap <= the problem's `gap` + tol,
-tol = 1e-6 (1 + |reference|)), iterations, first call (compile + solve) and warm time (best of
-2). A SUCCESS outside that band is flagged `FALSE-SUCCESS?`: a SUCCESS must be a local
+tol = 1e-6 (1 + |reference|)), iterations, first call (compile + solve), warm time (best of
+2), and the warm time per iteration in evaluations of the values and Jacobian (`jt.evaluate`,
+jitted, warm): what an iteration costs beyond its one or two evaluations. A SUCCESS outside that band is flagged `FALSE-SUCCESS?`: a SUCCESS must be a local
 optimum of the restricted problem, so it should be checked against the others.
 
 Solvers: KalmanSQP (default: exact Hessian, trust region; `line-search`: BFGS and the merit line
@@ -149,6 +150,19 @@ def measure(entry, run):
     return {"status": status, "J": J, "gap": gap, "at": at, "its": its, "first": first, "warm": warm}
 
 
+def jacobian_seconds(entry):
+    """Warm seconds of one evaluation of the values and the forward-mode Jacobian at the
+    start (jitted, best of 5): the unit of the per-iteration cost (issue 49)."""
+    evaluate = jax.jit(lambda a: jt.evaluate(entry.problem, entry.control, a, simulator=SIM))
+    jax.block_until_ready(evaluate(entry.start))
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        jax.block_until_ready(evaluate(entry.start))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--problems", nargs="*", default=list(CLASSIC.names()))
@@ -160,22 +174,28 @@ def main():
     args = parser.parse_args()
     print(f"# gallery: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, jax {jax.__version__}")
     print(f"# {time.strftime('%Y-%m-%d')}; RK4(40) per segment; naive starts")
-    header = "| problem | reference | solver | status | objective | gap | at ref | its | first (s) | warm (s) |"
+    header = (
+        "| problem | reference | solver | status | objective | gap | at ref | its | first (s) | warm (s) | "
+        "warm / its / Jacobian |"
+    )
     if not args.no_naive:
         print(header)
         print("|" + "---|" * (header.count("|") - 1))
     tally = {s: 0 for s in args.solvers}
     for name in args.problems if not args.no_naive else ():
         entry = CLASSIC.get(name)
+        jacobian = jacobian_seconds(entry)
         for sname in args.solvers:
             r = measure(entry, SOLVERS[sname])
             if r["status"] == "refused":
-                print(f"| {name} | {entry.reference:.7g} | {sname} | refused | | | | | | |")
+                print(f"| {name} | {entry.reference:.7g} | {sname} | refused | | | | | | | |")
                 continue
             tally[sname] += bool(r["at"])
             print(
                 f"| {name} | {entry.reference:.7g} | {sname} | {r['status']} | {r['J']:.9g} | {r['gap']:.2e} | "
-                f"{'yes' if r['at'] else 'no'} | {r['its']} | {r['first']:.2f} | {r['warm']:.3f} |"
+                f"{'yes' if r['at'] else 'no'} | {r['its']} | {r['first']:.2f} | {r['warm']:.3f} | "
+                f"{r['warm'] / max(r['its'], 1) / jacobian:.1f} |",
+                flush=True,
             )
     n = len(args.problems)
     if not args.no_naive:

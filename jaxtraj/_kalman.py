@@ -137,18 +137,19 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
     return d, P, active
 
 
-def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None):
+def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None):
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
 
-    Starting point: `d` and `P`, the minimum of the quadratic model (Hessian `B`) on the
-    equality rows `H` and the covariance left by filtering them. Sought: the minimum with
-    C + C_a d <= 0 too. The working set W starts empty (dual feasible: all multipliers 0);
-    each round takes the row p that d violates most (above `threshold`) and moves along
-    z = P_W c_p, P_W the covariance after filtering W's rows (noise `r`): the step that
-    lowers row p's value while keeping E's and W's, optimal in the metric of B. The
-    multipliers u of W change by t rho, rho the least-squares solution of [H; C_W]^T rho =
-    B z - c_p (stationarity along the step). The step length t is the smaller of the full
+    Starting point: `d` and `P`, the minimum of the quadratic model on the equality rows `H`
+    and the covariance left by filtering them (P^-1 = B + H^T R^-1 H, B the model's Hessian,
+    R the rows' noise). Sought: the minimum with C + C_a d <= 0 too. The working set W
+    starts empty (dual feasible: all multipliers 0); each round takes the row p that d
+    violates most (above `threshold`) and moves along z = P_W c_p, P_W the covariance after
+    filtering W's rows (noise `r`): the step that lowers row p's value while keeping E's and
+    W's, optimal in the metric of B. The multipliers u of W change by t rho, rho the solution
+    of [H; C_W]^T rho = B z - c_p (stationarity along the step), whose W part is -(C_W P
+    C_W^T + R_W)^-1 C_W P c_p (that of H is not needed). The step length t is the smaller of the full
     step s_p / (c_p^T z), which adds p to W, and the partial step at which a multiplier of W
     reaches 0, which drops that row and retries p. A row (nearly) dependent on W (c_p^T z
     below `dependence` x its prior variance `prior_var`: neighbouring grid points) takes the
@@ -168,19 +169,18 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     """
     m, n = H.shape[0], d.shape[0]
     rank_left = n - (m if num_equalities is None else num_equalities)
-
-    def working_rows(W):
-        # W's rows gathered (in order) into n slots: rows independent of E's and of each
-        # other are at most n, so the covariance and the multipliers cost O(n) rows per
-        # round instead of one per grid point
-        idx = jnp.nonzero(W, size=n, fill_value=0)[0]
-        return idx, jnp.arange(n) < jnp.sum(W)
-
-    def covariance(idx, valid):
-        return sequential_update(jnp.zeros_like(d), P, C_a[idx], jnp.zeros(n, d.dtype), r[idx], active=valid)[1]
+    # W's rows live in n slots (rows independent of E's and of each other are at most n), with
+    # G = C_W P (one slot per row), M = S^-1, S = C_W P C_W^T + R_W, and P_W = P - G^T M G,
+    # the covariance after filtering W's rows, all kept up to date by rank-one changes when a
+    # row joins or leaves: a round costs O(n^2) (issue 49: refiltering W's rows and a
+    # least-squares solve for the multipliers in every round made a 124-parameter QP of a few
+    # hundred rounds take 15 s). Free slots: zero rows of G, unit rows of M.
+    # Along z = P_W c the model's gradient changes by B z - c = -C_W^T M G c (B the inverse of
+    # P, E's rows with their noise included), so the multipliers of W change by rho = -M G c
+    # (the solution of [H; C_W]^T rho = B z - c, exact where those rows are independent).
 
     def body(state):
-        d, W, u, p, it, _, skipped = state
+        d, W, u, p, it, _, skipped, PW, M, G, slot_row = state
         s = C + C_a @ d
         v = jnp.where(W | skipped, -jnp.inf, s)
         worst = jnp.argmax(v)
@@ -188,12 +188,11 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
         finished = pick & (v[worst] <= threshold)
         p = jnp.where(pick, worst, p)
         c = C_a[p]
-        idx, valid = working_rows(W)
-        z = covariance(idx, valid) @ c
+        z = PW @ c
         zc = c @ z
         independent = (zc > dependence * prior_var[p]) & (jnp.sum(W) < rank_left)  # rank: |W| <= n - m
-        A = jnp.concatenate([H, jnp.where(valid[:, None], C_a[idx], 0.0)])
-        rho = jnp.zeros_like(C).at[idx].add(jnp.where(valid, jnp.linalg.lstsq(A.T, B @ z - c)[0][m:], 0.0))
+        w = M @ (G @ c)
+        rho = jnp.zeros_like(C).at[jnp.maximum(slot_row, 0)].add(jnp.where(slot_row >= 0, -w, 0.0))
         ratio = jnp.where(W & (rho < 0), u / jnp.where(rho < 0, -rho, 1.0), jnp.inf)
         k = jnp.argmin(ratio)
         t_full = jnp.where(independent, s[p] / jnp.where(independent, zc, 1.0), jnp.inf)
@@ -208,19 +207,46 @@ def dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
         W = W.at[k].set(W[k] & ~drop).at[p].set(W[p] | full)  # k may equal p
         u = u.at[k].set(jnp.where(drop, 0.0, u[k]))
         skipped = skipped.at[p].set(skipped[p] | stuck)
+        # p joins W (the filter's rank-one update of P_W; M bordered by the Schur complement
+        # zc + r_p of S)
+        j = jnp.argmin(slot_row)  # a free slot (-1); W holds fewer than n rows here
+        gamma = jnp.where(full, zc + r[p], 1.0)
+        e_j = jnp.arange(n) == j
+        vj = jnp.where(e_j, -1.0, w)
+        PW = jnp.where(full, PW - jnp.outer(z, z) / gamma, PW)
+        M = jnp.where(full, M - jnp.diag(e_j.astype(M.dtype)) + jnp.outer(vj, vj) / gamma, M)
+        G = jnp.where(full & e_j[:, None], P @ c, G)
+        slot_row = jnp.where(full & e_j, p, slot_row)
+        # k leaves W: M loses its slot by the Schur complement, P_W gets the row's information
+        # back (P - G^T M G with the smaller M)
+        i = jnp.argmax(slot_row == k)
+        e_i = jnp.arange(n) == i
+        m_i = M[:, i]
+        q = G.T @ m_i
+        PW = jnp.where(drop, PW + jnp.outer(q, q) / m_i[i], PW)
+        M = jnp.where(
+            drop,
+            jnp.where(e_i[:, None] | e_i[None, :], jnp.diag(e_i.astype(M.dtype)), M - jnp.outer(m_i, m_i) / m_i[i]),
+            M,
+        )
+        G = jnp.where(drop & e_i[:, None], 0.0, G)
+        slot_row = jnp.where(drop & e_i, -1, slot_row)
         p = jnp.where(full | finished | stuck, -1, p)
-        return d, W, u, p, it + 1, finished, skipped
+        return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row
 
     def cond(state):
         return ~state[5] & (state[4] < max_iter)
 
     none = jnp.zeros(C.shape, bool)
-    init = (d, none, jnp.zeros_like(C), jnp.array(-1), jnp.array(0), jnp.array(False), none)
+    init = (
+        d, none, jnp.zeros_like(C), jnp.array(-1), jnp.array(0), jnp.array(False), none,
+        P, jnp.eye(n, dtype=d.dtype), jnp.zeros((n, n), d.dtype), jnp.full(n, -1),
+    )  # fmt: skip
     d, W, u, *_ = lax.while_loop(cond, body, init)
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
 
-def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None):
+def inequality_step(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
     filtered as observations C_a d = -C (noise `r`), with one refinement pass (the same
@@ -232,13 +258,18 @@ def inequality_step(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max
     take the step back (|H d + E| as large as |E|: a pendulum's minimum time STALLED above
     `ctol`; RESULTS.md). Returns `(d, P, W, u, excess)`: the step, its covariance, and
     `dual_active_set`'s working set, multipliers and excess."""
-    W, u, excess = dual_active_set(d, P, B, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities)
-    d1, _, _ = sequential_update(d, P, C_a, -C, r, active=W)
+    W, u, excess = dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities)
+    # W's rows gathered in their order into n slots (at most n are independent): the same
+    # updates as a scan over every row that skips the others, at a fraction of the rounds
+    n = d.shape[0]
+    idx = jnp.nonzero(W, size=n, fill_value=0)[0]
+    valid = jnp.arange(n) < jnp.sum(W)
+    d1, _, _ = sequential_update(d, P, C_a[idx], -C[idx], r[idx], active=valid)
     P0, E, r_E = equalities
     m = E.shape[0]
     on = jnp.arange(m) < (m if num_equalities is None else num_equalities)
-    rows, z, noise = jnp.concatenate([H, C_a]), jnp.concatenate([-E, -C]), jnp.concatenate([r_E, r])
-    d1, P1, _ = sequential_update(d1, P0, rows, z, noise, active=jnp.concatenate([on, W]))
+    rows, z, noise = jnp.concatenate([H, C_a[idx]]), jnp.concatenate([-E, -C[idx]]), jnp.concatenate([r_E, r[idx]])
+    d1, P1, _ = sequential_update(d1, P0, rows, z, noise, active=jnp.concatenate([on, valid]))
     return d1, P1, W, u, excess
 
 

@@ -321,14 +321,11 @@ class KalmanSQP(AbstractSolver):
             pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
-            B_soft = B + ev.H.T @ (ev.H / r_soft[:, None])
             n_soft = n_rows - (0 if ev.V is None else ev.V.shape[0])  # path and terminal rows
             C_s, C_as = C[:n_soft], C_a[:n_soft]
             softened = C_s > self.ctol
             noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var[:n_soft], 0.0)))
             noise = noise / jnp.maximum(m + jnp.sum(softened), 1) + 1e-300
-            soft_rows = jnp.where(softened[:, None], C_as, 0.0)
-            B_softer = B + (ev.H.T @ ev.H + soft_rows.T @ soft_rows) / noise
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`,
             # or the final step (its working rows refiltered) leaves a problem's row past 100
@@ -364,7 +361,6 @@ class KalmanSQP(AbstractSolver):
                 d, P2, active, _, excess = inequality_step(
                     d_eq,
                     P_eq,
-                    jnp.where(softer, B_softer, jnp.where(elastic, B_soft, B)),
                     jnp.where(elastic, 0.0, ev.H),
                     jnp.where(soft, -jnp.inf, C),  # (a softened row is no hard row)
                     C_a,

@@ -96,8 +96,11 @@ def test_gallery_lists_every_feature():
 
 
 # SLSQP stops at its iteration limit on Goddard (degenerate coast nodes) and orbit raising
-# (the thrust direction's length is free); IPOPT is their second solver
-@pytest.mark.parametrize("name", [n for n in CLASSIC.names() if n not in ("goddard", "orbit-raising")])
+# (the thrust direction's length is free), and at its first iteration on the free-flying robot
+# ("singular matrix C in LSQ subproblem"); IPOPT is their second solver
+@pytest.mark.parametrize(
+    "name", [n for n in CLASSIC.names() if n not in ("goddard", "orbit-raising", "free-flying-robot")]
+)
 def test_slsqp_reaches_each_reference_within_its_gap(name):
     entry = CLASSIC.get(name)
     res = solve_slsqp(entry.problem, entry.control, entry.start, simulator=SIM)
@@ -109,7 +112,7 @@ def test_slsqp_reaches_each_reference_within_its_gap(name):
     assert float(jnp.max(jnp.abs(E), initial=0.0)) < 1e-6
 
 
-@pytest.mark.parametrize("name", CLASSIC.names())
+@pytest.mark.parametrize("name", [n for n in CLASSIC.names() if n != "free-flying-robot"])
 def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     """The default solver (the trust region) from the naive start and from round-off-sized
     perturbations of it (absolute, so the zero entries move too): SUCCESS at the reference
@@ -347,10 +350,28 @@ def test_an_exact_model_opens_the_trust_region_to_its_own_minimizer():
         assert abs(float(sol.objective) - 30.0) <= 1e-8
 
 
-@pytest.mark.parametrize("name", ["lq", "capped-terminal", "goddard"])
+@pytest.mark.parametrize("name", ["lq", "capped-terminal", "goddard", "free-flying-robot"])
 def test_ipopt_reaches_the_reference(name):
-    """Problems without terminal equality constraints, and Goddard (SLSQP's failure)."""
+    """Problems without terminal equality constraints, and SLSQP's failures (Goddard, the
+    free-flying robot)."""
     entry = CLASSIC.get(name)
     res = solve_ipopt(entry.problem, entry.control, entry.start, simulator=SIM)
     assert res.success
     assert -1e-6 * (1.0 + abs(entry.reference)) <= res.objective - entry.reference <= entry.gap
+
+
+def test_free_flying_robot_from_the_zero_start_and_its_round_off():
+    """The size study of issue 49: 4 bounded controls x 30 pieces (124 parameters, 248 bound
+    rows). From the zero start and its round-off perturbations: SUCCESS within the entry's gap
+    of the published continuous optimum, and an independent KKT check (`jt.kkt_report`) holds
+    at the end point. (Its cost per iteration is measured in `benchmarks/gallery.py`.) The
+    local optimum reached moves with the start's last bits (8.01819 or 8.02074; IPOPT
+    7.97519): an open defect of issue 49, not asserted away."""
+    entry = CLASSIC.get("free-flying-robot")
+    assert entry.start.shape == (124,)
+    for start in perturbed_starts(entry.start, absolute=True):
+        sol = jt.solve(entry.problem, entry.control, start, simulator=SIM, max_steps=200)
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert 0.0 <= float(sol.objective) - entry.reference <= entry.gap
+        report = jt.kkt_report(entry.problem, entry.control, sol.params, simulator=SIM)
+        assert report.satisfied(ctol=1e-8, gtol=1e-6)

@@ -35,7 +35,7 @@ def _step(n, me, mi):
         prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
         pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
         step = inequality_step(
-            d, P1, B, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20, (P, E, r)
+            d, P1, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20, (P, E, r)
         )
         return (*step, pinned)
 
@@ -113,9 +113,9 @@ def _steps_without_equalities(n, me, mi):
         prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
         args = (C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20)
         no_rows = (P, jnp.zeros(0, g.dtype), jnp.zeros(0, g.dtype))
-        none = inequality_step(-P @ g, P, B, H[:0], *args, no_rows)
+        none = inequality_step(-P @ g, P, H[:0], *args, no_rows)
         zero_rows = (P, jnp.zeros(H.shape[0], g.dtype), jnp.ones(H.shape[0], g.dtype))
-        zeros = inequality_step(-P @ g, P, B, jnp.zeros_like(H), *args, zero_rows, num_equalities=0)
+        zeros = inequality_step(-P @ g, P, jnp.zeros_like(H), *args, zero_rows, num_equalities=0)
         return none, zeros
 
     return steps

@@ -535,6 +535,62 @@ def hypersensitive() -> ClassicProblem:
     )  # fmt: skip
 
 
+# ------------------------------------------------------------------- free-flying robot
+
+#: The continuous optimum of the free-flying robot (Betts 2010, example 6.13, and PSOPT's
+#: `examples/robot`: J* = 7.9101471).
+FREE_FLYING_ROBOT_COST = 7.9101471
+
+
+def _free_flying_robot(t, x, u, args):
+    thrust = (u[0] - u[1]) + (u[2] - u[3])  # F1 + F2
+    return jnp.stack(
+        [
+            x[3],
+            x[4],
+            x[5],
+            thrust * jnp.cos(x[2]),
+            thrust * jnp.sin(x[2]),
+            args["arm"] * ((u[0] - u[1]) - (u[2] - u[3])),
+        ]
+    )
+
+
+def _sum_u(t, x, u, args):
+    return jnp.sum(u)
+
+
+def free_flying_robot(segments: int = 30) -> ClassicProblem:
+    """A free-flying robot (Sakawa 1999; Betts 2010, example 6.13): two thrusters, each a pair
+    of controls 0 <= u <= 1 (F1 = u0 - u1, F2 = u2 - u3), (x, y, theta, vx, vy, omega) from
+    (-10, -10, pi/2, 0, 0, 0) to rest at the origin in tf = 12, min int u0 + u1 + u2 + u3.
+    Four bounded controls on `segments` pieces (30: 124 parameters, 248 bound rows): the size
+    study of issue 49 (the cost of an iteration as parameters and rows grow). The optimum is
+    bang-bang; the restricted problem (30 pieces, RK4) has several local optima above the
+    continuous 7.9101471: IPOPT reaches 7.97519 from the zero start, the default solver
+    8.01819 or 8.02074 (which one follows the start's last bits: an open defect, issue 49)."""
+    problem = Problem(
+        _free_flying_robot, [-10.0, -10.0, np.pi / 2, 0.0, 0.0, 0.0], _at_origin, tuple(f"{n}(tf) = 0" for n in _FFR_STATES),
+        num_controls=4, args={"arm": jnp.asarray(0.2)}, running_cost=_sum_u, final_time=12.0,
+        control_lower=[0.0] * 4, control_upper=[1.0] * 4, state_names=_FFR_STATES,
+        control_names=("u1+", "u1-", "u2+", "u2-"), name="free-flying-robot",
+    )  # fmt: skip
+    control, start = _zero_start(problem, PiecewiseLinear(segments, channels=4))
+    return ClassicProblem(
+        "free-flying-robot", problem, control, start, FREE_FLYING_ROBOT_COST, "published (Betts 2010, example 6.13)",
+        "Sakawa (1999), Trajectory planning of a free-flying robot by using the optimal control, "
+        "Optimal Control Appl. Methods 20; Betts (2010), Practical Methods for Optimal Control, ex. 6.13", 0.15,
+        ("several controls", "control bounds", "running cost", "fixed tf", "size: 124 parameters"),
+    )  # fmt: skip
+
+
+_FFR_STATES = ("x", "y", "theta", "vx", "vy", "omega")
+
+
+def _at_origin(tf, xf, args):
+    return xf
+
+
 _BUILDERS = {
     "lq": lq,
     "bryson-denham": bryson_denham,
@@ -551,6 +607,7 @@ _BUILDERS = {
     "zermelo": zermelo,
     "goddard": goddard,
     "orbit-raising": orbit_raising,
+    "free-flying-robot": free_flying_robot,
 }
 
 
