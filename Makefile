@@ -25,13 +25,13 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile -m slow
 
-# another CPU's arithmetic on this one (issue 49): the round-off-sensitive tests with XLA's
+# another CPU's arithmetic on this one (issue 49): the round-off-sensitive tests (both tiers) with XLA's
 # vectorization capped at SSE4.2 and at AVX (FMA use and reduction order change as on
 # another processor)
 ISA_TESTS := tests/test_random_problems.py tests/test_classic.py tests/test_kalman_sqp.py
 test-isa: $(STAMP)
 	for isa in SSE4_2 AVX; do \
-	  XLA_FLAGS=--xla_cpu_max_isa=$$isa $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile $(ISA_TESTS) || exit 1; \
+	  XLA_FLAGS=--xla_cpu_max_isa=$$isa $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile -m "slow or not slow" $(ISA_TESTS) || exit 1; \
 	done
 
 # lint, format check, and the documentation site built with --strict (into a throwaway folder)

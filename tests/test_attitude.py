@@ -136,6 +136,7 @@ def _solve(rep, **kwargs):
     return prob, ctrl, sol
 
 
+@pytest.mark.slow
 def test_unconstrained_slew_cuts_into_the_cone():
     """The minimum-energy slew without the keep-out constraint (solved as the same problem with
     a 0.001 deg cone, never active: the same compiled solver as the constrained test) passes
@@ -148,6 +149,7 @@ def test_unconstrained_slew_cuts_into_the_cone():
     assert abs(float(sol.objective) - 2.155796) < 1e-5  # 2.1558e-4 N^2 m^2 s
 
 
+@pytest.mark.slow
 def test_constrained_slew_in_both_forms():
     """The keep-out constraint is active (energy +5.1 %), holds on a 10x finer grid (the grid
     constraint's 1e-3 deg backoff covers the dips between grid points), and the quaternion and
@@ -165,6 +167,7 @@ def test_constrained_slew_in_both_forms():
     assert objective["quaternion"] > 1.05 * 2.155796  # the unconstrained optimum
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("representation", attitude.REPRESENTATIONS)
 def test_kalman_sqp_reaches_the_augmented_lagrangian_optimum(representation):
     """KalmanSQP from rest, the cone's grid points observed through its active set (see

@@ -8,9 +8,11 @@ Euler forms reach the same energy."""
 import json
 import os
 
+import pytest
 from helpers import load_example
 
 
+@pytest.mark.slow
 def test_attitude_example_quick(tmp_path, capsys):
     example = load_example("attitude")
     out = str(tmp_path / "attitude")

@@ -100,6 +100,7 @@ def test_batch_equals_single_solves(batch, singles):
     assert np.max(np.asarray(batch.max_constraint_error)[good]) < 1e-8
 
 
+@pytest.mark.slow
 def test_bad_starts_fail_alone_in_a_vmapped_group(batch):
     # lanes=3: per chunk, three starts run vmapped and the next one takes the lane of the
     # first to finish (the NaN start 2 ends at once, start 3 replaces it; the hopeless start 5
@@ -154,6 +155,7 @@ print(json.dumps({"devices_per_chunk": used, "steps": np.asarray(sols.steps).tol
 """
 
 
+@pytest.mark.slow
 def test_sharded_over_4_host_devices_equals_unsharded(batch, tmp_path):
     np.save(tmp_path / "starts.npy", STARTS)
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "PYTHONPATH": REPO}
@@ -356,6 +358,7 @@ def test_bad_arguments():
 C = jt.controls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "ctrl",
     [
@@ -467,6 +470,7 @@ np.savez(sys.argv[5], *[np.asarray(x) for x in jax.tree.leaves(sols)])
 """
 
 
+@pytest.mark.slow
 def test_two_hosts_with_jax_distributed(batch, tmp_path):
     """The module docstring's multi-host recipe, with two processes on this machine: each
     returns the whole batch; only process 0 prints and writes the folder."""
@@ -521,6 +525,7 @@ def _cpu_devices(code, **env):
     return int(proc.stdout.strip())
 
 
+@pytest.mark.slow
 def test_import_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
     """`import jaxtraj` gives JAX one CPU device per core (solve_batch and multistart then
     use every core); the user's own count wins: set before (JAX_NUM_CPU_DEVICES, XLA_FLAGS),
@@ -539,6 +544,7 @@ def test_import_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
     assert _cpu_devices("import jax; jax.numpy.ones(1); import jaxtraj") == 1
 
 
+@pytest.mark.slow
 def test_import_sets_the_xla_cpu_options_xla_accepts():
     """`import jaxtraj` raises XLA:CPU's small-while-loop threshold and, on a jaxlib that knows the
     flag (0.5.3 to 0.10), turns the fusion emitters off; XLA accepts both (it aborts on an
@@ -671,6 +677,7 @@ def test_only_where_loops_as_long_as_the_lanes_that_need_it():
     np.testing.assert_array_equal(jax.jit(solve)(False, 5, 2), -1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "solver",
     [jt.KalmanSearch(), jt.KalmanSQP(), jt.KalmanSQP(hessian="bfgs", globalization="line-search")],

@@ -55,6 +55,7 @@ def run_here(tmp_path, monkeypatch, capsys):
     return call
 
 
+@pytest.mark.slow
 def test_solve_writes_results_that_load_back(tmp_path):
     out = tmp_path / "case4"
     r = run("solve", "earth-mars", "--case", "4", "--steps", "40", "--out", str(out), tmp_path=tmp_path)
@@ -86,6 +87,7 @@ def test_problems_lists_the_problems(run_here):
         assert name in r.stdout
 
 
+@pytest.mark.slow
 def test_solve_runs_a_gallery_problem(tmp_path, run_here):
     out = tmp_path / "max-range"
     r = run_here("solve", "max-range", "--steps", "40", "--out", str(out))
@@ -157,6 +159,7 @@ def reach():
 """
 
 
+@pytest.mark.slow
 def test_resume_of_a_users_problem_file(tmp_path, run_here):
     """Issue 51: --resume of `file.py:function` is accepted in a new process (the module's
     name no longer follows Python's salted `hash`) and refused once a module constant of
@@ -385,6 +388,7 @@ def test_solve_with_kalman_sqp(tmp_path, run_here, solver):
     assert abs(summary["objective"] - 6.0) < 1e-10 and summary["max_constraint_error"] < 1e-10
 
 
+@pytest.mark.slow
 def test_monte_carlo_after_a_solve(tmp_path, run_here):
     out = tmp_path / "mc"
     r = run_here(

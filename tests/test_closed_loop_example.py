@@ -7,9 +7,11 @@ import json
 import os
 
 import numpy as np
+import pytest
 from helpers import load_example
 
 
+@pytest.mark.slow
 def test_closed_loop_example_writes_its_table_and_figures(tmp_path, capsys):
     example = load_example("closed_loop")
     out = tmp_path / "closed_loop"

@@ -8,6 +8,7 @@ import sys
 
 import jax
 import numpy as np
+import pytest
 from helpers import energy_problem
 
 import jaxtraj as jt
@@ -78,6 +79,7 @@ print(folder, count("/compile_requests_use_cache"), count("/cache_hits"), repr(f
 """
 
 
+@pytest.mark.slow
 def test_compilation_cache_serves_a_new_process(tmp_path):
     """`jt.enable_compilation_cache()` (folder from $JAXTRAJ_CACHE_DIR): a second process running
     the same solve loads every program it compiles from disk (JAX's cache-hit events), with the

@@ -129,6 +129,7 @@ def test_state_bound_reaches_the_analytic_optimum(solver):
     assert float(jnp.max(fine.x[:, 0])) < limit + 1e-6
 
 
+@pytest.mark.slow
 def test_default_solver_meets_slsqp_on_the_state_bound():
     """Issue 20: the default solver once claimed SUCCESS at 4.0312 (grid points kept active
     without a multiplier-sign check) and was STALLED at iteration 0 from a zero control.
@@ -145,6 +146,7 @@ def test_default_solver_meets_slsqp_on_the_state_bound():
         assert float(sol.max_path_constraint) <= 1e-10
 
 
+@pytest.mark.slow
 def test_locally_infeasible_problem_gets_its_own_status():
     """x'' = u, |u| <= 1, from rest to rest at x = 1 in tf = 1: out of reach (it takes tf =
     2). From a zero start KalmanSQP honours the bounds and ends CONSTRAINT_STATIONARY (not
@@ -341,6 +343,7 @@ def terminal_inequality_problem(cap):
 TERMINAL_INEQUALITY_ATOL = {"kalman-search": 1e-4, "augmented-lagrangian": 1e-7}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cap", [1.0, 3.0])
 @pytest.mark.parametrize("solver", ["default", "trust-region", "kalman-search", "augmented-lagrangian", "slsqp"])
 def test_terminal_inequality_reaches_the_analytic_optimum(cap, solver):
@@ -407,6 +410,7 @@ def linear_reference():
     return res.tf
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["default", "trust-region", "kalman-search", "augmented-lagrangian", "slsqp"])
 @pytest.mark.parametrize("family", ["constant", "linear"])
 def test_declared_control_bounds_are_honored_by_every_solver(solver, family, linear_reference):
@@ -436,6 +440,7 @@ def test_bounds_a_family_cannot_honor_are_refused():
         solve_slsqp(prob, parabolic, a0, simulator=SIM)
 
 
+@pytest.mark.slow
 def test_tf_bounds_reach_the_analytic_optimum():
     """x'' = u, rest to rest over a distance 1, min 1/2 int u^2 with tf free in [0.5, 2]: the
     energy of the optimal u = (6 - 12 t / tf) / tf^2 is 6 / tf^3, decreasing, so tf* = 2 and
@@ -475,6 +480,7 @@ def lq_fixed_time():
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", [None, TRUST_REGION, jt.KalmanSearch(), "al", "slsqp"])
 def test_fixed_final_time_reaches_the_riccati_optimum_without_tf_in_the_vector(solver):
     prob = lq_fixed_time()
@@ -488,6 +494,7 @@ def test_fixed_final_time_reaches_the_riccati_optimum_without_tf_in_the_vector(s
     np.testing.assert_allclose(np.asarray(ctrl(params, t))[:, 0], -np.sinh(1.0 - t) / np.cosh(1.0), atol=1e-3)
 
 
+@pytest.mark.slow
 def test_fixed_final_time_equals_the_terminal_constraint_formulation():
     """Bryson-Denham with `final_time=1` and with the constraint tf - 1 = 0 on a free-tf family
     are one problem: SLSQP reaches the same restricted optimum from the same start."""
@@ -577,6 +584,7 @@ def free_start_problem(bounds=None):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", [None, jt.KalmanSearch(), "al", "slsqp"])
 @pytest.mark.parametrize("x_lo", [None, 0.8])
 def test_free_initial_state_reaches_the_analytic_optimum(solver, x_lo):
@@ -645,6 +653,7 @@ def test_free_initial_state_errors_name_the_argument():
         jt.simulate(prob, family, family.initial_guess(1.0, 0.0, 0.0))
 
 
+@pytest.mark.slow
 def test_augmented_lagrangian_keeps_interior_knots_below_a_fixed_final_time():
     """Free node times with a fixed tf (layout "interior_knots"): AL's parameter box keeps the
     last free knot below T (the box takes T from the problem), at the free-start optimum

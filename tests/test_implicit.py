@@ -113,6 +113,7 @@ MT_GRAD = jax.value_and_grad(min_time)
 # ---------------------------------------------------------------- tests
 
 
+@pytest.mark.slow
 def test_lq_derivatives_match_the_linear_algebra():
     """dJ*/d(target, w, x0, T) and du*/d(target, x0) of the restricted LQ problem (fixed
     final time, running cost, terminal equalities) against NumPy's linear solve; dJ*/dT (the
@@ -149,6 +150,7 @@ def test_lq_derivatives_match_the_linear_algebra():
     assert rel_err(dJ["target"], -lam) < 1e-7
 
 
+@pytest.mark.slow
 def test_minimum_time_derivatives_through_the_control_bounds():
     """tf* = 2 sqrt(d / g) at a vertex (both levels on their bounds, the switch and tf fixed
     by the terminal equalities): dtf*/dd = 1 / sqrt(d g), dtf*/dg = -sqrt(d) / g^1.5, and
@@ -172,6 +174,7 @@ def test_minimum_time_derivatives_through_the_control_bounds():
     assert rel_err(d_upper, -d / (g * tf)) < 1e-7 and rel_err(d_lower, d / (g * tf)) < 1e-7
 
 
+@pytest.mark.slow
 def test_an_active_terminal_inequality():
     """Reach x(tf) >= d (a terminal inequality) with |u| <= 1, velocity free: u = 1 on both
     pieces, tf* = sqrt(2 d / g), its derivatives in d and g through the active inequality
@@ -200,6 +203,7 @@ def test_an_active_terminal_inequality():
     assert rel_err(grad["g"], -0.5 * np.sqrt(2 * d) / g**1.5) < 1e-7
 
 
+@pytest.mark.slow
 def test_forward_and_reverse_modes_agree():
     """jax.jacfwd and jax.jacrev (under jit) give the same Jacobian of the objective and the
     parameters; jax.grad and jax.jvp without jit give its row and column."""
@@ -217,6 +221,7 @@ def test_forward_and_reverse_modes_agree():
     assert rel_err(jax.jvp(objective, (theta,), (jnp.array([0.0, 1.0]),))[1], fwd[0][1]) < 1e-10
 
 
+@pytest.mark.slow
 def test_vmap_of_gradients_is_one_program_and_equals_a_loop():
     """jax.vmap over a batch of targets gives the gradients of a loop of solves; once
     compiled, a new batch of the same size compiles nothing."""
@@ -235,6 +240,7 @@ def test_vmap_of_gradients_is_one_program_and_equals_a_loop():
     assert rel_err(again["d"], 1 / np.sqrt(np.array([1.1, 1.6, 2.1]) * np.array([0.9, 1.0, 1.1]))) < 1e-7
 
 
+@pytest.mark.slow
 def test_unsuccessful_or_singular_solves_give_nan():
     """A solve stopped short (max_steps=1) gives NaN derivatives; so does a SUCCESS whose
     KKT matrix is singular (three pieces for a bang-bang control: where the two equal
@@ -254,6 +260,7 @@ def test_unsuccessful_or_singular_solves_give_nan():
     assert not point.curved and not point.differentiable
 
 
+@pytest.mark.slow
 def test_weakly_active_row_is_reported_and_let_go():
     """A bound met exactly at the unconstrained optimum (tf <= tf*, multiplier 0) is weakly
     active: `kkt_point` reports it, so does the Solution's flag (for every solver; and not
@@ -303,6 +310,7 @@ def test_every_float_field_has_a_derivative(field):
 BD = jt.problems.classic.get("bryson-denham")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bound", [1.0 / 9.0, 0.2])
 def test_state_bound_on_the_grid(bound):
     """Bryson-Denham, x <= l on the integration grid (a path constraint): dJ*/dl against
@@ -395,6 +403,7 @@ def test_adaptive_diffrax_simulation_in_both_modes():
     assert rel_err(jax.jvp(objective, (T,), (jnp.ones(()),))[1], -18.0) < 1e-8
 
 
+@pytest.mark.slow
 def test_solar_sail_minimum_time_in_the_characteristic_acceleration():
     """Kelley's sail transfer to Mars' orbit (the pitch bounds left out, as in
     test_solar_sail; PiecewiseLinear(6), RK4(20)): dtf*/da0 (a0 the characteristic
@@ -455,6 +464,7 @@ def test_attitude_slew_in_the_keep_out_half_angle():
     assert rel_err(grad, (up[0] - down[0]) / (2 * step)) < 1e-6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 6, 9, 18])
 def test_random_qp_against_the_oracle(seed):
     """Random convex problems of benchmarks/fuzz.py (3 states, 2 controls, 4 pieces; seed 2:
@@ -493,6 +503,7 @@ def test_random_qp_against_the_oracle(seed):
         assert got.shape == fd.shape and fd.size and rel_err(got, fd) < 1e-5
 
 
+@pytest.mark.slow
 def test_solve_batch_derivatives_are_the_per_start_ones():
     """jt.solve_batch is differentiable the same way, lane by lane (the problem, and its
     tangent, shared): jax.jacfwd and jax.jacrev of the objectives and parameters of 3 starts

@@ -32,6 +32,7 @@ def test_min_energy_double_integrator_analytic_optimum():
         np.testing.assert_allclose(sol.params[:-1], [6.0, -6.0], atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", [4, 5])
 def test_thesis_cases_reach_the_restricted_optimum(case):
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
@@ -116,6 +117,7 @@ def test_bad_solver_settings():
 SLSQP_OPTIMA = {1: 3.32009723, 2: 3.32075166, 3: 3.32079812, 4: 3.32488832, 5: 3.32153651, 6: 3.36688418, 7: 3.33474663}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", range(1, 8))
 def test_all_seven_published_cases_converge_to_the_restricted_optimum(case):
     """The published start and tuning, and the start perturbed by round-off-sized relative

@@ -239,6 +239,7 @@ def test_merit_slope_where_a_zero_multiplier_rises():
     assert float(slope) <= -0.5 * float(jnp.asarray(d) @ B @ jnp.asarray(d)) * (1 - 1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", range(1, 8))
 def test_seven_cases_to_kkt_tolerance(case):
     """The default (the trust region) from all seven published starts, each also perturbed
@@ -360,6 +361,7 @@ def _normal_step(J, t, radius):
     return np.asarray(v_min), np.asarray(normal_step(v_min, jnp.asarray(J), jnp.asarray(t), radius))
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(
     seed=st.integers(0, 2**31 - 1),
@@ -434,6 +436,7 @@ def test_trust_region_step_keeps_the_radius_and_the_knot_gaps():
     assert free.min() < 1e-5
 
 
+@pytest.mark.slow
 def test_pure_bfgs_ends_in_another_local_minimum_on_case_3():
     """Why the first iterations use exact Hessians: with BFGS from a0's Hessian alone, the
     path from case 3's published start ends in another local minimum (3.35114), confirmed
@@ -462,6 +465,7 @@ def _distances_to_the_optimum(case, solver):
     return np.array(dist), state
 
 
+@pytest.mark.slow
 def test_superlinear_convergence_on_case_4():
     """BFGS and line search: distances to the optimum of successive iterates, their ratio
     falls toward 0."""
@@ -486,6 +490,7 @@ def test_trust_region_converges_quadratically_on_case_4():
     assert all(b <= 0.5 * a**2 for a, b in pairs)  # quadratic, not merely linear with a small rate
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hessian", ["bfgs", "exact"])
 def test_min_energy_analytic_optimum(hessian):
     """u* = 6 - 12 t, energy 6 (tf = 1)."""
@@ -503,6 +508,7 @@ def test_min_energy_analytic_optimum(hessian):
     np.testing.assert_allclose(sol.params[:-1], 6.0 - 12.0 * np.linspace(0, 1, 4), atol=1e-7)
 
 
+@pytest.mark.slow
 def test_exact_hessian_converges_quadratically_on_case_5():
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(5)
     sol = jt.solve(prob, ctrl, a0, jt.KalmanSQP(globalization="line-search"))
@@ -511,6 +517,7 @@ def test_exact_hessian_converges_quadratically_on_case_5():
     assert int(sol.iterations) <= 9
 
 
+@pytest.mark.slow
 def test_batch_and_bad_start():
     """The line search under vmap (the trust region's: `test_trust_region_batch_equals_single_solves`)."""
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
@@ -586,6 +593,7 @@ def test_kkt_outcome_levels():
         assert (bool(got[0]), bool(got[1]), int(got[2])) == (converged, stalled, after), (feasible, pg, no_progress)
 
 
+@pytest.mark.slow
 def test_trust_region_batch_equals_single_solves():
     """Under vmap (where the Hessian's lax.cond runs both branches) each start ends where its
     single solve does; a NaN start fails alone."""
@@ -622,6 +630,7 @@ def test_trust_region_from_a_collapsed_segment():
     assert bool(sol.history.accepted[0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name", ["case-1", "bryson-denham", "goddard", "capped-terminal", "min-time-double-integrator"]
 )
@@ -641,6 +650,7 @@ def test_lagrangian_hessian_forward_over_reverse_matches_forward_over_forward(na
     np.testing.assert_allclose(W, 0.5 * (ref + ref.T), rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("simulator", [jt.RK4(4), jt.Diffrax()], ids=["rk4", "diffrax"])
 def test_trust_region_min_energy_analytic_optimum(simulator):
     """u* = 6 - 12 t, energy 6, with either Hessian path of `lagrangian_hessian`."""
@@ -652,6 +662,7 @@ def test_trust_region_min_energy_analytic_optimum(simulator):
     np.testing.assert_allclose(sol.params[:-1], 6.0 - 12.0 * np.linspace(0, 1, 4), atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "segments, hessian", [(4, "bfgs"), (4, "exact"), (8, "bfgs"), (4, "trust-region"), (8, "trust-region")]
 )
@@ -689,6 +700,7 @@ def test_path_constraint_analytic_optimum(segments, hessian):
     assert abs(float(free.objective) - 6.0) < 1e-9
 
 
+@pytest.mark.slow
 def test_trust_region_qp_step_stays_in_its_box_when_the_equalities_cannot():
     """The moon lander's naive start has two equal thrust levels, so its switch time has zero
     gradient, curvature and constraint coupling (variance ~1e8 in the QP's metric). E's rows

@@ -63,6 +63,7 @@ def _bryson_denham(limit):
     )
 
 
+@pytest.mark.slow
 def test_a_path_constraint_multiplier_is_the_value_sensitivity():
     """Bryson-Denham with x <= l, 1/6 < l < 1/4: the optimum touches the bound once, at t =
     1/2, with u = alpha + beta t on [0, 1/2] (mirrored), beta = 24 - 96 l, alpha = 24 l - 8, and

@@ -105,6 +105,7 @@ def test_declared_affinity_matches_a_probe():
         assert (affine_segment_basis(ctrl, jnp.zeros(ctrl.num_params)) is not None) <= ctrl.affine
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "solver",
     [
@@ -122,6 +123,7 @@ def test_every_solver_reaches_the_analytic_optimum(solver):
     _energy_on_line(sol)
 
 
+@pytest.mark.slow
 def test_solve_batch_and_multistart():
     prob = _energy_problem(bound=10.0)
     starts = jt.random_starts(prob, CTRL, jax.random.key(3), 4, around=A0, spread=2.0)

@@ -51,6 +51,7 @@ def _call(entry, a):
         jt.sensitivities(PROB, CTRL, a, simulator=SIM)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("entry", ["solve", "simulate", "evaluate", "sensitivities"])
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(a=st.one_of(ARRAYS, OTHERS))

@@ -42,13 +42,22 @@ CASES = [(seed, 2, 1, 3) for seed in range(4)] + [(seed, 3, 2, 4) for seed in ra
 CASES += [(seed, 5, 3, 3) for seed in range(8, 10)]
 
 
-@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
-def test_solvers_reach_the_oracle_optimum_of_random_problems(solver):
+# the default on a part of each sample in `make test`, the rest and the line search in the
+# slow tier (`make test-slow`, run by CI)
+SOLVER_SAMPLES = [
+    pytest.param(TRUST_REGION, slice(None, None, 2), id="default-even"),
+    pytest.param(TRUST_REGION, slice(1, None, 2), id="default-odd", marks=pytest.mark.slow),
+    pytest.param(LINE_SEARCH, slice(None), id="line-search", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize("solver, sample", SOLVER_SAMPLES)
+def test_solvers_reach_the_oracle_optimum_of_random_problems(solver, sample):
     """From zeros and from a random start inside the bounds: SUCCESS at the QP's optimal value
     (1e-8 relative) with every constraint met (1e-8), on every problem of the sample."""
     fuzz = load_benchmark("fuzz")
     outcomes = []
-    for seed, n, m, K in CASES:
+    for seed, n, m, K in CASES[sample]:
         rp = fuzz.make(seed, n, m, K)
         reference, _ = rp.oracle()
         for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items():
@@ -81,14 +90,14 @@ def test_mixed_oracle_model_is_jaxtraj_evaluation():
 MIXED = [46, 52, 1, 4, 5]
 
 
-@pytest.mark.parametrize("solver", [TRUST_REGION, LINE_SEARCH], ids=["default", "line-search"])
-def test_solvers_reach_the_oracle_optimum_of_mixed_problems(solver):
+@pytest.mark.parametrize("solver, sample", SOLVER_SAMPLES)
+def test_solvers_reach_the_oracle_optimum_of_mixed_problems(solver, sample):
     """Every start of each `lq-mixed` sample problem (zeros, random, the straight line for
     linear pieces): SUCCESS at the QP's optimal value (1e-8 relative) with every constraint
     met (1e-8)."""
     fuzz = load_benchmark("fuzz")
     outcomes = []
-    for seed in MIXED:
+    for seed in MIXED[sample]:
         rp = fuzz.make_mixed(seed)
         reference, _ = rp.oracle()
         for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items():

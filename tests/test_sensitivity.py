@@ -23,6 +23,7 @@ def _ids(examples):
     return [repr(c) for _, c, _ in examples]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("prob, ctrl, a", FAMILIES, ids=_ids(FAMILIES))
 def test_families_forward_unit_fd_agree(prob, ctrl, a):
     xf_f, J_f = jt.sensitivities(prob, ctrl, a, "forward", simulator=SIM)
@@ -37,6 +38,7 @@ def test_families_forward_unit_fd_agree(prob, ctrl, a):
         assert np.all(np.max(np.abs(np.asarray(J_f)), axis=0) > 1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ALL_CASES)
 def test_thesis_cases_forward_unit_fd_agree(case):
     prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(case)
@@ -153,6 +155,7 @@ def test_affine_basis_inside_a_jit_equals_the_basis_outside(ctrl):
     np.testing.assert_array_equal(np.asarray(inside), np.asarray(outside))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name", ["case-4", "hypersensitive", "brachistochrone", "orbit-raising", "free-initial-state", "design-parameter"]
 )

@@ -316,6 +316,7 @@ def test_slsqp_from_kelley_start_approaches_the_unrestricted_optimum_from_above(
     assert d["flags"] == [] and d["max_miss"] < 1e-8
 
 
+@pytest.mark.slow
 def test_mercury_multistart_reference_is_the_unrestricted_optimum():
     """Issue 20's sail to Mercury (a0 = 0.1686, `SaturatedSpline(10, 1)`, naive start: equal
     durations summing to tf = 5, constant pitch -35 deg). The issue gave 264.46 d as the
@@ -334,6 +335,7 @@ def test_mercury_multistart_reference_is_the_unrestricted_optimum():
     assert r.tf - 1e-6 <= float(sol.tf) <= r.tf * (1 + 1e-4)  # measured +3.0e-5
 
 
+@pytest.mark.slow
 def test_kalman_sqp_reaches_kelleys_optimum_from_above(indirect):
     """Kelley's anchor for KalmanSQP: a fine continuous pitch program (PiecewiseLinear(16),
     nodes at fixed fractions of tf) from a constant 35 deg and tf = 7 reaches the target orbit
@@ -440,6 +442,7 @@ def test_orbit_plane_takes_the_state_layout_from_the_problem(which):
         plot.polar_angle(traj, bare)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["sqp", "search"])
 @pytest.mark.parametrize(
     "target, pitch_deg, tf_days_indirect",

@@ -6,9 +6,11 @@ import json
 import os
 
 import numpy as np
+import pytest
 from helpers import load_example
 
 
+@pytest.mark.slow
 def test_solar_sail_example_quick(tmp_path, capsys):
     example = load_example("solar_sail")
     out = str(tmp_path / "sail")

@@ -174,6 +174,7 @@ def test_problem_name_does_not_recompile():
         jt.Problem(base.dynamics, base.x0, base.terminal, base.constraint_names, args=base.args, name=3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("solver", "details", "start_step"),
     [
@@ -215,6 +216,7 @@ UNBOUNDED = jt.Problem(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=lambda s: type(s).__name__
 )
@@ -231,6 +233,7 @@ def test_an_unbounded_problem_ends_diverged(solver):
         assert 1 < n < 300 and float(sol.history.objective[n - 2]) >= -1e20
 
 
+@pytest.mark.slow
 def test_a_start_without_a_finite_point_reports_nan_not_zeros():
     """A solve that ends NONFINITE before any accepted step (the start's trajectory is NaN)
     reported tf = 0, objective 0 and max_constraint_error 0, the placeholder evaluation's
@@ -265,6 +268,7 @@ def _reach_min_time(**kw):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", [jt.KalmanSQP(), jt.KalmanSearch(), jt.AugmentedLagrangian()], ids=type)
 def test_max_violation_covers_every_constraint_kind(solver):
     """Issue 51: `max_violation` says how infeasible the returned point is over every kind
@@ -282,6 +286,7 @@ def test_max_violation_covers_every_constraint_kind(solver):
         np.testing.assert_allclose(start.max_violation, 0.5, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_max_violation_is_the_kkt_reports():
     """... and agrees with the KKT report's own row-by-row computation at points with path
     rows (a speed bound on the grid), bound rows and a terminal inequality, violated or met."""

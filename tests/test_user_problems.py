@@ -19,6 +19,7 @@ REFERENCE = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(REFERENCE))
 def test_default_solver_reaches_the_restricted_optimum_of_a_users_statement(name):
     _, prob, ctrl, a0, _ = next(p for p in UP.problems() if p[0] == name)
@@ -28,6 +29,7 @@ def test_default_solver_reaches_the_restricted_optimum_of_a_users_statement(name
     assert jt.kkt_report(prob, ctrl, sol.params, simulator=UP.SIM).satisfied(1e-8, 1e-5)
 
 
+@pytest.mark.slow
 def test_degenerate_vertex_of_the_robot_arm_is_a_kkt_point():
     """The COPS robot arm (linear pieces): 30 active control bounds and 6 terminal equalities
     for 34 parameters. The default reached IPOPT's point (same evaluation, parameters within
