@@ -171,8 +171,8 @@ def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_it
     rank_left = n - (m if num_equalities is None else num_equalities)
     # W's rows live in n slots (rows independent of E's and of each other are at most n), with
     # G = C_W P (one slot per row), M = S^-1, S = C_W P C_W^T + R_W, and P_W = P - G^T M G,
-    # the covariance after filtering W's rows, all kept up to date by rank-one changes when a
-    # row joins or leaves: a round costs O(n^2) (issue 49: refiltering W's rows and a
+    # the covariance after filtering W's rows, kept up to date by rank-one changes when a row
+    # joins (formed again when one leaves): a round costs O(n^2) (issue 49: refiltering W's rows and a
     # least-squares solve for the multipliers in every round made a 124-parameter QP of a few
     # hundred rounds take 15 s). Free slots: zero rows of G, unit rows of M.
     # Along z = P_W c the model's gradient changes by B z - c = -C_W^T M G c (B the inverse of
@@ -217,20 +217,22 @@ def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_it
         M = jnp.where(full, M - jnp.diag(e_j.astype(M.dtype)) + jnp.outer(vj, vj) / gamma, M)
         G = jnp.where(full & e_j[:, None], P @ c, G)
         slot_row = jnp.where(full & e_j, p, slot_row)
-        # k leaves W: M loses its slot by the Schur complement, P_W gets the row's information
-        # back (P - G^T M G with the smaller M)
-        i = jnp.argmax(slot_row == k)
-        e_i = jnp.arange(n) == i
-        m_i = M[:, i]
-        q = G.T @ m_i
-        PW = jnp.where(drop, PW + jnp.outer(q, q) / m_i[i], PW)
-        M = jnp.where(
-            drop,
-            jnp.where(e_i[:, None] | e_i[None, :], jnp.diag(e_i.astype(M.dtype)), M - jnp.outer(m_i, m_i) / m_i[i]),
-            M,
-        )
+        # k leaves W: its slot is freed and P_W and M are formed again from the rows left (the
+        # filter over the slots, S inverted): downdating them by rank-one changes drifted over
+        # ~120 rounds (a QP of the free-flying robot under SSE4.2 arithmetic ended 404 past a
+        # bound, its trust region STALLED; issue 49). Rows leave far less often than they join.
+        e_i = jnp.arange(n) == jnp.argmax(slot_row == k)
         G = jnp.where(drop & e_i[:, None], 0.0, G)
         slot_row = jnp.where(drop & e_i, -1, slot_row)
+
+        def refactor(slot_row):
+            valid, at = slot_row >= 0, jnp.maximum(slot_row, 0)
+            rows = C_a[at]
+            PW = sequential_update(jnp.zeros_like(d), P, rows, jnp.zeros(n, d.dtype), r[at], active=valid)[1]
+            S = rows @ P @ rows.T + jnp.diag(r[at])
+            return PW, jnp.linalg.inv(jnp.where(valid[:, None] & valid[None, :], S, jnp.eye(n, dtype=d.dtype)))
+
+        PW, M = lax.cond(drop, refactor, lambda _: (PW, M), slot_row)
         p = jnp.where(full | finished | stuck, -1, p)
         return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row
 
