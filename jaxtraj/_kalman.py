@@ -137,7 +137,7 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
     return d, P, active
 
 
-def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None):
+def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None, warm=None):
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
 
@@ -166,6 +166,13 @@ def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_it
     (boolean, per row), its multipliers, and C + C_a d on the rows outside W (-inf on W's):
     its maximum is <= `threshold` unless a row was skipped (round-off, or the inconsistency)
     or `max_iter` ended the rounds. The caller filters W's rows to get the step itself.
+
+    `warm` (boolean, per row; the rows active in the last QP of an SQP run) starts W there
+    instead of empty: its rows are filtered (dependent ones and those past the rank left
+    out), and the rows whose multipliers at that minimum are negative are dropped until none
+    is (`_warm_start`): a dual feasible start of the same method, so the same solution, in
+    far fewer rounds once the active set settles (issue 49: the free-flying robot's QPs took
+    300-500 rounds from W empty, a few from the last active set).
     """
     m, n = H.shape[0], d.shape[0]
     rank_left = n - (m if num_equalities is None else num_equalities)
@@ -240,15 +247,73 @@ def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_it
         return ~state[5] & (state[4] < max_iter)
 
     none = jnp.zeros(C.shape, bool)
-    init = (
-        d, none, jnp.zeros_like(C), jnp.array(-1), jnp.array(0), jnp.array(False), none,
-        P, jnp.eye(n, dtype=d.dtype), jnp.zeros((n, n), d.dtype), jnp.full(n, -1),
-    )  # fmt: skip
+    if warm is None:
+        W, u, PW, M, G, slot_row = (
+            none,
+            jnp.zeros_like(C),
+            P,
+            jnp.eye(n, dtype=d.dtype),
+            jnp.zeros((n, n), d.dtype),
+            jnp.full(n, -1),
+        )
+    else:
+        d, W, u, PW, M, G, slot_row = _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, warm)
+    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), none, PW, M, G, slot_row)
     d, W, u, *_ = lax.while_loop(cond, body, init)
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
 
-def inequality_step(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None):
+def _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, keep):
+    """`dual_active_set`'s start from the rows `keep`: they are filtered into slots in
+    order (a row whose variance left is below `dependence` x its prior variance, or one past
+    `rank_left` rows, is left out), the multipliers at the minimum on them are u = M s, s their
+    values at `d` (the filter's step d - G^T u meets them: stationarity along C_W^T u), and
+    the rows with u < 0 are dropped and the rest filtered again until none is negative.
+    Returns `(d, W, u, P_W, M, G, slot_row)` in `dual_active_set`'s terms."""
+    n = d.shape[0]
+    slots = jnp.arange(n)
+
+    def fill(keep):
+        idx = jnp.nonzero(keep, size=n, fill_value=0)[0]
+        valid = slots < jnp.sum(keep)
+
+        def add(carry, j):
+            PW, count = carry
+            p = idx[j]
+            z = PW @ C_a[p]
+            zc = C_a[p] @ z
+            take = valid[j] & (zc > dependence * prior_var[p]) & (count < rank_left)
+            PW = jnp.where(take, PW - jnp.outer(z, z) / jnp.where(take, zc + r[p], 1.0), PW)
+            return (PW, count + take), take
+
+        (PW, _), taken = lax.scan(add, (P, 0), slots)
+        slot_row = jnp.where(taken, idx, -1)
+        at = jnp.maximum(slot_row, 0)
+        G = jnp.where(taken[:, None], C_a[at] @ P, 0.0)
+        S = G @ C_a[at].T + jnp.diag(r[at])
+        M = jnp.linalg.inv(jnp.where(taken[:, None] & taken[None, :], S, jnp.eye(n, dtype=d.dtype)))
+        u = M @ jnp.where(taken, C[at] + C_a[at] @ d, 0.0)
+        kept = jnp.zeros(C.shape, jnp.int32).at[at].max((taken & (u >= 0)).astype(jnp.int32)) > 0
+        return kept, 0.5 * (PW + PW.T), M, G, slot_row, u
+
+    def again(state):
+        keep, passes, (kept, *_) = state
+        return jnp.any(kept != keep) & (passes < n)
+
+    first = fill(keep & jnp.isfinite(C))
+    keep, _, (_, PW, M, G, slot_row, u) = lax.while_loop(
+        again, lambda s: (s[2][0], s[1] + 1, fill(s[2][0])), (keep & jnp.isfinite(C), 0, first)
+    )
+    at = jnp.maximum(slot_row, 0)
+    valid = slot_row >= 0
+    W = jnp.zeros(C.shape, jnp.int32).at[at].max(valid.astype(jnp.int32)) > 0
+    u_rows = jnp.zeros_like(C).at[at].add(jnp.where(valid, u, 0.0))
+    return d - G.T @ u, W, u_rows, PW, M, G, slot_row
+
+
+def inequality_step(
+    d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None, warm=None
+):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
     filtered as observations C_a d = -C (noise `r`), with one refinement pass (the same
@@ -259,8 +324,8 @@ def inequality_step(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_it
     where B has directions of nearly zero curvature (variance 1e8) before the working rows
     take the step back (|H d + E| as large as |E|: a pendulum's minimum time STALLED above
     `ctol`; RESULTS.md). Returns `(d, P, W, u, excess)`: the step, its covariance, and
-    `dual_active_set`'s working set, multipliers and excess."""
-    W, u, excess = dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities)
+    `dual_active_set`'s working set, multipliers and excess (`warm`: its start)."""
+    W, u, excess = dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities, warm)
     # W's rows gathered in their order into n slots (at most n are independent): the same
     # updates as a scan over every row that skips the others, at a fraction of the rounds
     n = d.shape[0]

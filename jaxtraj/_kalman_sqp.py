@@ -125,6 +125,27 @@ def convexify(hessian, H, min_curvature):
 ELASTIC_PINNED = 1e-8
 
 
+def _redundant_simple_rows(C, C_a, n_rows, radius):
+    """The rows of a QP with the step box |d_i| <= `radius` (rows n_rows..n_rows + 2n, after
+    the problem's n_rows) that a parallel row makes redundant: of a simple bound on one d_i
+    (one nonzero entry: a parameter bound) and the box's row on the same side of d_i, the
+    looser one. Parallel rows are dependent, so in the dual active set the tighter one
+    could only replace the looser one, a drop and a refactor each (issue 49: most of the
+    500 rounds of the free-flying robot's QPs, 124 bounded parameters)."""
+    n = C_a.shape[1]
+    A = C_a[:n_rows]
+    simple = jnp.sum(A != 0.0, axis=1) == 1
+    col = jnp.argmax(jnp.abs(A), axis=1)
+    coef = jnp.take_along_axis(A, col[:, None], axis=1)[:, 0]
+    bound = -C[:n_rows] / jnp.where(simple, coef, 1.0)  # d_col <= bound (coef > 0) or >= bound
+    upper, lower = simple & (coef > 0.0), simple & (coef < 0.0)
+    ub = jnp.full(n, jnp.inf, C.dtype).at[col].min(jnp.where(upper, bound, jnp.inf))
+    lb = jnp.full(n, -jnp.inf, C.dtype).at[col].max(jnp.where(lower, bound, -jnp.inf))
+    rows = (upper & (bound > radius)) | (lower & (bound < -radius))
+    box = jnp.concatenate([ub <= radius, lb >= -radius])
+    return jnp.concatenate([rows, box, jnp.zeros(C.shape[0] - n_rows - 2 * n, bool)])
+
+
 def _covariance(B):
     """P = B^-1, exactly symmetric. (A Cholesky solve gives the same steps to round-off, but
     the attitude runs of examples/attitude.py are sensitive enough to round-off to end
@@ -296,10 +317,15 @@ class KalmanSQP(AbstractSolver):
             if gap_rows is not None:
                 C = jnp.concatenate([C, gap_rows[0]])
                 C_a = jnp.concatenate([C_a, gap_rows[1]])
+            redundant = jnp.zeros(C.shape, bool)
+            if radius is not None:
+                redundant = _redundant_simple_rows(C, C_a, n_rows, radius)
             prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)  # before any observation
             r_c = self.r_rel * prior_var + 1e-300
             threshold = 0.01 * self.ctol
             max_rounds = 4 * d.shape[0] + 20
+            # the rows active in the last QP (their multipliers in `lam`) start the active set
+            warm = jnp.concatenate([lam[m:] > 0, jnp.zeros(C.shape[0] - n_rows, bool)])
 
             # Elastic mode. If the linearized constraints are inconsistent (the hard step is,
             # as defined below; or a row that E's rows alone pin, its variance left by them below
@@ -366,7 +392,7 @@ class KalmanSQP(AbstractSolver):
                     d_eq,
                     P_eq,
                     jnp.where(elastic, 0.0, ev.H),
-                    jnp.where(soft, -jnp.inf, C),  # (a softened row is no hard row)
+                    jnp.where(soft | redundant, -jnp.inf, C),  # (a softened row is no hard row)
                     C_a,
                     r_c,
                     prior_var,
@@ -375,6 +401,7 @@ class KalmanSQP(AbstractSolver):
                     max_rounds,
                     (jnp.where(elastic, P_eq, P), ev.E, r),
                     num_equalities=jnp.where(elastic, 0, m),
+                    warm=warm,
                 )
                 final = C + C_a @ d
                 outside = jnp.where(active, -jnp.inf, final)  # the rows the active set left out

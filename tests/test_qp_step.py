@@ -26,7 +26,7 @@ def _step(n, me, mi):
     once per shape."""
 
     @jax.jit
-    def step(B, g, H, E, C, C_a):
+    def step(B, g, H, E, C, C_a, warm):
         P = jnp.linalg.inv(B)
         P = 0.5 * (P + P.T)
         r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
@@ -35,7 +35,7 @@ def _step(n, me, mi):
         prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
         pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
         step = inequality_step(
-            d, P1, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20, (P, E, r)
+            d, P1, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20, (P, E, r), warm=warm
         )
         return (*step, pinned)
 
@@ -74,10 +74,15 @@ def _random_qp(seed, n, me, mi, neighbours):
     me=st.sampled_from([0, 2]),
     mi=st.sampled_from([4, 13]),
     neighbours=st.booleans(),
+    warm=st.sampled_from(["empty", "random", "all"]),
 )
-def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours):
+def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours, warm):
+    """From an empty working set and from warm starts (`dual_active_set(warm=)`: a random
+    subset of the rows, every row): the same solution."""
     B, g, H, E, C, C_a = _random_qp(seed, n, me, mi, neighbours)
-    d, _, W, u, excess, pinned = _step(n, me, mi)(*(jnp.asarray(v) for v in (B, g, H, E, C, C_a)))
+    rng = np.random.default_rng(seed + 1)
+    start = {"empty": np.zeros(mi, bool), "random": rng.uniform(size=mi) < 0.5, "all": np.ones(mi, bool)}[warm]
+    d, _, W, u, excess, pinned = _step(n, me, mi)(*(jnp.asarray(v) for v in (B, g, H, E, C, C_a, start)))
     # a row that E's rows (nearly) pin makes KalmanSQP take its elastic step instead
     assume(not pinned)
     d, W, u = np.asarray(d), np.asarray(W), np.asarray(u)
