@@ -120,6 +120,16 @@ def check_memory(argument: str, nbytes: int, what: str):
         )
 
 
+def check_solver_memory(control, lanes=1):
+    """`check_memory` for the dense n x n matrices (Hessian, covariance, Jacobians; 4 at
+    least) that every solver forms for the control's n parameters, `lanes` starts at once:
+    a control family of 10**9 segments is refused before anything is allocated."""
+    n = control.num_params
+    lanes_at_once = "" if lanes == 1 else f" in each of {lanes:,} lanes"
+    what = f"a solve (4 dense {n:,} x {n:,} matrices at least{lanes_at_once})"
+    check_memory("control", lanes * 4 * 8 * n * n, what)
+
+
 @contextlib.contextmanager
 def memory_refusal(what: str, remedy: str):
     """Turn XLA's RESOURCE_EXHAUSTED (a compiled program that asks for more memory than the

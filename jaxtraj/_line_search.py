@@ -236,11 +236,16 @@ class LineSearch(eqx.Module):
             d = without_scale(d, a, state.scale_free)  # (`_kkt.scale_free`)
             d_max = jnp.max(jnp.abs(d))
             capped = d_max > state.radius
-            d = d * jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
+            cut = jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
+            d = d * cut
             # the penalty carries over unless it ran past `mu_max` (see the module docs)
             mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
             base = sqp.release_inactive(ev, lam)
-            return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
+            # the multipliers' step is cut with d: (d, lambda_qp - lambda) is one direction of
+            # the merit's search, and a cut d beside the whole multiplier step made a slope of
+            # dlam^T E alone (orbit raising, BFGS: steps of 1e-5 in a accepted for the merit's
+            # multiplier term, multipliers 2e4 where they are 1.4, STALLED; issue 49)
+            return (d, base, *self.start(sqp, ev, base, mu, B, d, base + cut * (lam_qp - base)))
 
         # A fresh direction (no integration) unless a search is pending; if B's step is no
         # descent direction for the merit (B degenerated, or the knot ordering bent the step),

@@ -38,6 +38,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import checkify
 
 from .controls import AbstractControl, FixedFinalTime, FreeInitialState
 
@@ -46,6 +47,22 @@ def minimum_time(tf, xf, args):
     """The default objective G = tf."""
     del xf, args
     return tf
+
+
+_INDEXING = frozenset({"dynamic_slice", "dynamic_update_slice", "gather", "scatter", "scatter-add"})
+
+
+def _indexes_by_value(jaxpr) -> bool:
+    """Whether a jaxpr (or one inside it) indexes an array by a traced value."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in _INDEXING:
+            return True
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (tuple, list)) else (param,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns") and _indexes_by_value(inner):
+                    return True
+    return False
 
 
 class Problem(eqx.Module):
@@ -263,8 +280,12 @@ class Problem(eqx.Module):
                     (len(self.terminal_inequality_names),),
                 )
             )
+        indexed = []
         for label, fn, shape in checks:
-            out = jax.eval_shape(fn, t, x, u)
+            traced = jax.make_jaxpr(fn, return_shape=True)(t, x, u)
+            out = traced[1]
+            if _indexes_by_value(traced[0].jaxpr):
+                indexed.append((label, fn))
             if getattr(out, "shape", None) != shape:
                 raise ValueError(
                     f"`{label}` must return an array of shape {shape} "
@@ -273,6 +294,18 @@ class Problem(eqx.Module):
                 )
             if not (jnp.issubdtype(out.dtype, jnp.floating) or jnp.issubdtype(out.dtype, jnp.integer)):
                 raise ValueError(f"`{label}` must return real numbers; got dtype {out.dtype}.")
+        # An index past an array's end (u[3] with 2 controls) is clamped by JAX, silently: a
+        # function that indexes by value (a dynamic slice or gather: how such an index is
+        # traced; u[1] is a static slice) runs once at x0 (u = 0, t = 0) with checkify's
+        # index checks, where the arrays are concrete (a problem built under a
+        # transformation is not checked).
+        concrete = [v for v in jax.tree.leaves((self.x0, self.args)) if isinstance(v, jax.core.Tracer)] == []
+        if concrete and indexed:
+            x0, u0 = jnp.asarray(self.x0, jnp.float64), jnp.zeros(nu, jnp.float64)
+            for label, fn in indexed:
+                error, _ = checkify.checkify(fn, errors=checkify.index_checks)(jnp.float64(0.0), x0, u0)
+                if error.get() is not None:
+                    raise ValueError(f"`{label}` indexes outside an array: {error.get().strip()}")
 
     @property
     def initial_state_bounds(self) -> tuple[np.ndarray, np.ndarray]:

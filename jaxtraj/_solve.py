@@ -4,7 +4,7 @@ the implicit function theorem: `_implicit`)."""
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_inputs, check_memory, check_problem_and_control, memory_refusal
+from ._checks import check_inputs, check_memory, check_problem_and_control, check_solver_memory, memory_refusal
 from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, run
 from ._implicit import differentiable_solve
 from ._kalman_sqp import KalmanSQP
@@ -79,6 +79,7 @@ def solve(
     check_simulator(simulator)
     solver.check(problem, control)
     check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")
+    check_solver_memory(control)
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
 

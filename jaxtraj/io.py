@@ -438,6 +438,14 @@ def load(folder):
         )
     if projected_gradient < 0:
         raise ValueError(f"{summary_path}: `projected_gradient` is a norm; got {float(projected_gradient)!r}.")
+    # SUCCESS promises feasibility within the solver's tolerance (the history's last entry)
+    status = _status(summary.get("status"), summary_path, "status")
+    tol = history["constraint_tolerance"][-1] if steps else np.nan
+    if status == Status.SUCCESS and np.isfinite(tol) and np.isfinite(max_violation) and max_violation > tol:
+        contradicts(
+            f"status SUCCESS with `max_violation` = {float(max_violation)!r}",
+            f"the solver's constraint tolerance {float(tol)!r} in its history",
+        )
     sol = Solution(
         params=jnp.asarray(params),
         tf=jnp.asarray(tf),
@@ -450,7 +458,7 @@ def load(folder):
         iterations=jnp.asarray(iterations),
         integrations=jnp.asarray(integrations),
         steps=jnp.asarray(steps),
-        status=_status(summary.get("status"), summary_path, "status"),
+        status=status,
         history=History(
             **{k: jnp.asarray(v) for k, v in history.items()}, details={k: jnp.asarray(v) for k, v in details.items()}
         ),

@@ -166,26 +166,24 @@ def test_default_solver_reaches_the_reference_from_the_naive_start(name):
     assert max(objectives) - min(objectives) <= 1e-7 * (1.0 + abs(entry.reference))
 
 
+@pytest.mark.slow
 def test_line_search_drops_orbit_raisings_free_scale():
     """The line search (BFGS) on orbit raising from the naive start and its round-off
     perturbations: with the exact Hessian at the start it recognizes the free scale
-    (`_kkt.scale_free`) and drops it from its steps, so the scale stays within 0.1-10x of the
-    start's in every run (before: 0.059x, in 297 iterations), and a SUCCESS is at the
-    reference. Whether a run ends SUCCESS follows the last bits (open defect of issue 49,
-    2026-12-06, 2-core EPYC: the naive start STALLED at -1.48999 after 185 steps, its
-    backtracking rejecting every length down to 1e-12, the 1e-12 and 1e-10 perturbations
-    SUCCESS in 854 and 136 iterations; under XLA's SSE4.2 and AVX arithmetic all three
-    SUCCESS in 246-825): at least two of the three are required."""
+    (`_kkt.scale_free`) and drops it from its steps, so the scale does not collapse (before:
+    0.059x, in 297 iterations; it grows instead, as steps orthogonal to the parameters do:
+    7-24x measured), and it ends SUCCESS at the reference. With the multiplier step cut
+    together with a step cut to the radius (`LineSearch`): before, the naive start STALLED at
+    -1.48999 on a 2-core EPYC (its merit's slope made of the multipliers' term alone,
+    multipliers 2e4 where they are 1.4) and its perturbations ended SUCCESS; now SUCCESS from
+    all three under the default, SSE4.2 and AVX arithmetic (77-518 iterations)."""
     entry = CLASSIC.get("orbit-raising")
     solver = jt.KalmanSQP(hessian="bfgs", globalization="line-search")
-    successes = 0
     for start in perturbed_starts(entry.start):
         sol = jt.solve(entry.problem, entry.control, start, solver, simulator=SIM)
-        assert 0.1 <= float(jnp.linalg.norm(sol.params) / jnp.linalg.norm(entry.start)) <= 10.0
-        if jt.status_name(sol.status) == "SUCCESS":
-            successes += 1
-            assert -1e-6 * (1.0 + abs(entry.reference)) <= float(sol.objective) - entry.reference <= entry.gap
-    assert successes >= 2
+        assert jt.status_name(sol.status) == "SUCCESS"
+        assert -1e-6 * (1.0 + abs(entry.reference)) <= float(sol.objective) - entry.reference <= entry.gap
+        assert 0.1 <= float(jnp.linalg.norm(sol.params) / jnp.linalg.norm(entry.start)) <= 100.0
 
 
 def test_trust_region_keeps_the_knot_order_in_its_qp():

@@ -125,6 +125,43 @@ def test_bad_problem_definitions():
         jt.problems.earth_mars.problem(gravity=2.0)
 
 
+def test_an_index_past_an_arrays_end_is_refused():
+    """Issue 51: JAX clamps u[3] of a 2-control u to u[1], silently; the problem refuses it
+    (the same function with u[1] is accepted, as are in-range index arrays), and so does it
+    an index array past the end or the terminal function's xf[5]."""
+    terminal = lambda tf, xf, args: xf[:2] - 1.0
+    ok = jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[1]]), [0.0, 0.0], terminal, ("x", "v"), num_controls=2)
+    assert ok.num_controls == 2
+    jt.Problem(
+        lambda t, x, u, args: jnp.stack([x[1], jnp.sum(u[jnp.array([0, 1])])]),
+        [0.0, 0.0],
+        terminal,
+        ("x", "v"),
+        num_controls=2,
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"`dynamics\(t, x, u, args\)` indexes outside an array: .*index 3 is out of bounds for axis 0 with size 2",
+    ):
+        jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[3]]), [0.0, 0.0], terminal, ("x", "v"), num_controls=2)
+    with pytest.raises(ValueError, match=r"`dynamics\(t, x, u, args\)` indexes outside an array: .*index 2 is out"):
+        jt.Problem(
+            lambda t, x, u, args: jnp.stack([x[1], jnp.sum(u[jnp.array([0, 2])])]),
+            [0.0, 0.0],
+            terminal,
+            ("x", "v"),
+            num_controls=2,
+        )
+    with pytest.raises(ValueError, match=r"`terminal\(tf, xf, args\)` indexes outside an array: .*index 5 is out"):
+        jt.Problem(
+            lambda t, x, u, args: jnp.stack([x[1], u[0]]),
+            [0.0, 0.0],
+            lambda tf, xf, args: jnp.stack([xf[0], xf[5]]),
+            ("x", "v"),
+            num_controls=2,
+        )
+
+
 def test_control_channel_mismatch():
     ctrl = C.SaturatedSpline(2, 1, [-1.0, -1.0], [1.0, 1.0])
     with pytest.raises(ValueError, match=r"2 channel\(s\) but `problem` 'earth-mars' expects num_controls=1"):
@@ -246,6 +283,18 @@ def test_what_cannot_fit_in_memory_is_refused_before_the_work():
         jt.simulate(PROB, ctrl, a0, simulator=jt.RK4(10**10))
     with pytest.raises(MemoryError, match=r"jt.solve needs more memory than the [\d,.]+ GB available \(one allocation"):
         jt.solve(PROB, ctrl, a0, simulator=jt.RK4(10**10), max_steps=3)
+    # a control of 10**5 segments (its start fits: 0.8 MB) whose solver matrices cannot
+    big = C.PiecewiseLinear(10**5)
+    start = big.initial_guess(3.4, 0.0, 0.0)
+    with pytest.raises(
+        ValueError,
+        match=r"`control`: a solve \(4 dense 100,002 x 100,002 matrices at least\) needs at least 320\.0 GB, " + limit,
+    ):
+        jt.solve(PROB, big, start)
+    with pytest.raises(
+        ValueError, match=r"`control`: a solve \(4 dense 100,002 x 100,002 matrices at least in each of 2 lanes\)"
+    ):
+        jt.solve_batch(PROB, big, np.stack([start, start]), progress=False, devices=jax.devices()[:1], lanes=2)
 
 
 def test_gtol_above_acceptable_gtol_names_both():

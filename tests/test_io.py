@@ -123,6 +123,10 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
             r"`max_violation` = -1\.0 is below one of its parts",
         ),
         (lambda d: _edit(d, lambda s: s.update(projected_gradient=-1)), r"`projected_gradient` is a norm; got -1\.0"),
+        (
+            lambda d: _edit(d, lambda s: s.update(max_violation=0.5)),
+            r"status SUCCESS with `max_violation` = 0\.5 contradicts .*constraint tolerance 1e-10 in its history",
+        ),
     ],
     ids=[
         "truncated-summary",
@@ -144,6 +148,7 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         "nan-literal",
         "max-violation",
         "negative-norm",
+        "success-with-violation",
     ],
 )
 def test_damaged_folders_name_the_file(result, tmp_path, damage, message):

@@ -12,7 +12,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from .. import io as _io
-from .._checks import check_memory, check_problem_and_control, memory_refusal
+from .._checks import check_memory, check_problem_and_control, check_solver_memory, memory_refusal
 from .._driver import HISTORY_BYTES, AbstractSolver
 from .._fingerprint import fingerprint, problem_fingerprint
 from .._implicit import differentiable_batch
@@ -123,6 +123,7 @@ def solve_batch(
     if lanes is None:
         lanes = 1 if devices[0].platform == "cpu" else per_device
     lanes = min(check_int("lanes", lanes, 1), per_device)
+    check_solver_memory(control, min(n, lanes * len(devices)))
     for name, flag in (("resume", resume), ("progress", progress), ("history", history)):
         if not isinstance(flag, bool):
             raise ValueError(f"`{name}` must be True or False; got {flag!r}.")
