@@ -47,8 +47,9 @@ and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a
   Goldfarb & Idnani's dual active-set method on the same rank-one updates
   (`jaxtraj._kalman.dual_active_set`): from the equality-constrained step, the most
   violated row joins, or replaces a working row whose multiplier would turn negative; rows
-  nearly dependent on the working ones (adjacent grid points) can only replace one. With
-  the line search the step bound |d_i| <= radius is part of the same QP. Linearized
+  nearly dependent on the working ones (adjacent grid points) can only replace one; it
+  starts from the last QP's active rows. With both globalizations the step bound
+  |d_i| <= radius is part of the same QP. Linearized
   constraints inconsistent with the inequalities (a start at rest whose bounded control the
   terminal rows alone fix) make an elastic step: the equalities observed with noise
   (`elastic`), a penalty instead of a hard row. The multipliers lambda = [lambda_E; nu >= 0] of
@@ -291,7 +292,9 @@ class KalmanSQP(AbstractSolver):
         it at round-off once the step is scaled down to the radius. `gap_rows` (the
         trust region: `_bounds.knot_gap_rows`, the rows of the KKT test) are more rows of
         that QP (multipliers not returned); appendix C then keeps a share of each gap the QP
-        closes."""
+        closes. The rows with positive multipliers in `lam` (the last QP's) start the active
+        set (`dual_active_set(warm=)`), and a parameter bound and the box's row on the same
+        side of the same parameter enter as one row, the tighter (`_redundant_simple_rows`)."""
         P = _covariance(B)
         prior = -P @ ev.G_a
         hph = jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H)
