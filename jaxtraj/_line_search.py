@@ -241,11 +241,17 @@ class LineSearch(eqx.Module):
             # the penalty carries over unless it ran past `mu_max` (see the module docs)
             mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
             base = sqp.release_inactive(ev, lam)
-            # the multipliers' step is cut with d: (d, lambda_qp - lambda) is one direction of
-            # the merit's search, and a cut d beside the whole multiplier step made a slope of
-            # dlam^T E alone (orbit raising, BFGS: steps of 1e-5 in a accepted for the merit's
-            # multiplier term, multipliers 2e4 where they are 1.4, STALLED; issue 49)
-            return (d, base, *self.start(sqp, ev, base, mu, B, d, base + cut * (lam_qp - base)))
+            # Without inequality rows the QP has no box (`KalmanSQP.direction`): its step and
+            # multipliers are the unbounded QP's, and the multipliers' step is cut with d, as
+            # (d, lambda_qp - lambda) is one direction of the merit's search: a cut d beside
+            # the whole multiplier step made a slope of dlam^T E alone (orbit raising, BFGS:
+            # steps of 1e-5 in a accepted for the merit's multiplier term, multipliers 2e4
+            # where they are 1.4, STALLED; issue 49). With rows the box is in the QP, whose
+            # multipliers belong to its bounded step (cut again, a least-time problem of the
+            # random-problem oracle STALLED).
+            if inequality_rows(ev) is None:
+                lam_qp = base + cut * (lam_qp - base)
+            return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
 
         # A fresh direction (no integration) unless a search is pending; if B's step is no
         # descent direction for the merit (B degenerated, or the knot ordering bent the step),
