@@ -483,6 +483,7 @@ def test_superlinear_convergence_on_case_4():
     assert len(near) >= 4 and np.exp(np.mean(np.log(near))) < 0.1 and near.max() < 0.25
 
 
+@pytest.mark.slow
 def test_trust_region_converges_quadratically_on_case_4():
     """Exact Hessian and trust region: d_k+1 <= C d_k^2 once close (measured distances 2.8,
     2.2, 1.6, 0.61, 0.27, 2.2e-2, 5.0e-5, 9.2e-10; d_k+1 / d_k^2 = 0.10, 0.37 at the end)."""
