@@ -282,9 +282,8 @@ class Problem(eqx.Module):
             )
         indexed = []
         for label, fn, shape in checks:
-            traced = jax.make_jaxpr(fn, return_shape=True)(t, x, u)
-            out = traced[1]
-            if _indexes_by_value(traced[0].jaxpr):
+            jaxpr, out = jax.make_jaxpr(fn, return_shape=True)(t, x, u)
+            if _indexes_by_value(jaxpr.jaxpr):
                 indexed.append((label, fn))
             if getattr(out, "shape", None) != shape:
                 raise ValueError(
@@ -299,8 +298,8 @@ class Problem(eqx.Module):
         # traced; u[1] is a static slice) runs once at x0 (u = 0, t = 0) with checkify's
         # index checks, where the arrays are concrete (a problem built under a
         # transformation is not checked).
-        concrete = [v for v in jax.tree.leaves((self.x0, self.args)) if isinstance(v, jax.core.Tracer)] == []
-        if concrete and indexed:
+        traced = any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves((self.x0, self.args)))
+        if indexed and not traced:
             x0, u0 = jnp.asarray(self.x0, jnp.float64), jnp.zeros(nu, jnp.float64)
             for label, fn in indexed:
                 error, _ = checkify.checkify(fn, errors=checkify.index_checks)(jnp.float64(0.0), x0, u0)

@@ -129,37 +129,20 @@ def test_an_index_past_an_arrays_end_is_refused():
     """Issue 51: JAX clamps u[3] of a 2-control u to u[1], silently; the problem refuses it
     (the same function with u[1] is accepted, as are in-range index arrays), and so does it
     an index array past the end or the terminal function's xf[5]."""
-    terminal = lambda tf, xf, args: xf[:2] - 1.0
-    ok = jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[1]]), [0.0, 0.0], terminal, ("x", "v"), num_controls=2)
-    assert ok.num_controls == 2
-    jt.Problem(
-        lambda t, x, u, args: jnp.stack([x[1], jnp.sum(u[jnp.array([0, 1])])]),
-        [0.0, 0.0],
-        terminal,
-        ("x", "v"),
-        num_controls=2,
-    )
-    with pytest.raises(
-        ValueError,
-        match=r"`dynamics\(t, x, u, args\)` indexes outside an array: .*index 3 is out of bounds for axis 0 with size 2",
-    ):
-        jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[3]]), [0.0, 0.0], terminal, ("x", "v"), num_controls=2)
-    with pytest.raises(ValueError, match=r"`dynamics\(t, x, u, args\)` indexes outside an array: .*index 2 is out"):
-        jt.Problem(
-            lambda t, x, u, args: jnp.stack([x[1], jnp.sum(u[jnp.array([0, 2])])]),
-            [0.0, 0.0],
-            terminal,
-            ("x", "v"),
-            num_controls=2,
-        )
+
+    def problem(rate, terminal=lambda tf, xf, args: xf[:2] - 1.0):
+        dynamics = lambda t, x, u, args: jnp.stack([x[1], rate(u)])
+        return jt.Problem(dynamics, [0.0, 0.0], terminal, ("x", "v"), num_controls=2)
+
+    assert problem(lambda u: u[1]).num_controls == 2
+    assert problem(lambda u: jnp.sum(u[jnp.array([0, 1])])).num_controls == 2
+    dynamics = r"`dynamics\(t, x, u, args\)` indexes outside an array: "
+    with pytest.raises(ValueError, match=dynamics + r".*index 3 is out of bounds for axis 0 with size 2"):
+        problem(lambda u: u[3])
+    with pytest.raises(ValueError, match=dynamics + r".*index 2 is out"):
+        problem(lambda u: jnp.sum(u[jnp.array([0, 2])]))
     with pytest.raises(ValueError, match=r"`terminal\(tf, xf, args\)` indexes outside an array: .*index 5 is out"):
-        jt.Problem(
-            lambda t, x, u, args: jnp.stack([x[1], u[0]]),
-            [0.0, 0.0],
-            lambda tf, xf, args: jnp.stack([xf[0], xf[5]]),
-            ("x", "v"),
-            num_controls=2,
-        )
+        problem(lambda u: u[0], lambda tf, xf, args: jnp.stack([xf[0], xf[5]]))
 
 
 def test_control_channel_mismatch():
