@@ -35,6 +35,9 @@ from jaxtraj import _batch
 from jaxtraj._batch import random_starts, solve_batch
 from jaxtraj._sensitivity import evaluate_restricted
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 PROB, CTRL, A0 = jt.problems.earth_mars.thesis_case(4)
 SOLVER = jt.KalmanSearch()
 SPREAD = 0.1

@@ -31,6 +31,9 @@ import jaxtraj as jt
 from jaxtraj._kkt import projected_gradient
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 try:
     import casadi  # noqa: F401
 

@@ -28,6 +28,9 @@ from jax.flatten_util import ravel_pytree
 
 import jaxtraj as jt
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 
 def timed(fn, repeat):
     jax.block_until_ready(fn())  # compile

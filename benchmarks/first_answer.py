@@ -42,6 +42,9 @@ from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
 from jaxtraj._simulate import final_state
 from jaxtraj.problems import earth_mars
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 jax.config.update("jax_enable_compilation_cache", False)
 
 try:

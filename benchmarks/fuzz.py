@@ -36,6 +36,9 @@ import numpy as np
 
 import jaxtraj as jt
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 STEPS = 4  # RK4 steps per segment (the oracle's and the solver's grid)
 
 

@@ -38,6 +38,9 @@ import numpy as np
 import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 try:
     import casadi  # noqa: F401
 

@@ -20,6 +20,9 @@ import jaxtraj as jt
 from jaxtraj._kkt import lagrangian_gradient
 from jaxtraj._sensitivity import evaluate_restricted, lagrangian_hessian
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 jax.config.update("jax_enable_compilation_cache", False)
 
 

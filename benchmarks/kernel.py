@@ -25,6 +25,9 @@ import jaxtraj as jt
 from jaxtraj._sensitivity import evaluate_restricted, forward_jacobian, unit_jacobian
 from jaxtraj._simulate import final_state
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 ROUNDS = 7
 
 

@@ -23,6 +23,9 @@ import numpy as np
 import jaxtraj as jt
 from jaxtraj import feedback as fb
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 
 def machine():
     cpu = platform.processor() or platform.machine()

@@ -25,6 +25,9 @@ import numpy as np
 
 import jaxtraj as jt
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 SAIL = jt.problems.solar_sail
 SOLVERS = {
     "default": jt.KalmanSQP(),  # exact Hessian, trust region

@@ -18,6 +18,9 @@ import jax
 import jaxtraj as jt
 from jaxtraj._sensitivity import evaluate_restricted
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 EM = jt.problems.earth_mars
 
 

@@ -38,6 +38,9 @@ import jaxtraj as jt
 from jaxtraj.baselines import solve_ipopt, solve_slsqp
 from jaxtraj.controls import PiecewiseConstant, PiecewiseLinear, SaturatedSpline
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # the CPU set-up the recorded numbers ran with (a device per core, XLA options)
+
 SIM = jt.RK4(40)
 
 

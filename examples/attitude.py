@@ -69,6 +69,9 @@ import jaxtraj as jt
 from jaxtraj.plot import pyplot
 from jaxtraj.problems import attitude
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
+
 REPS = attitude.REPRESENTATIONS  # ("quaternion", "euler")
 SOLVERS = {"al": "AugmentedLagrangian", "sqp": "KalmanSQP"}
 UNCONSTRAINED_CONE_DEG = 1e-3  # a cone that is never active: the unconstrained slew

@@ -47,6 +47,9 @@ import numpy as np
 import jaxtraj as jt
 from jaxtraj import feedback as fb
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
+
 AU_KM = 149_597_870.7
 V0_MS = 29_784.7  # sqrt(mu_sun / 1 AU) in m/s
 SIGMA_X, SIGMA_U, SIGMA_F = 1e-3, 0.05, 1e-4

@@ -35,6 +35,9 @@ import jaxtraj as jt
 from jaxtraj.plot import pyplot
 from jaxtraj.problems import solar_sail as ss
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
+
 DAYS = ss.DAYS_PER_UNIT
 #: the normalized acceleration unit, the Sun's gravity at 1 AU [mm/s^2]
 ACCEL_MM_S2 = 5.930

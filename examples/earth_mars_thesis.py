@@ -9,7 +9,9 @@ references; e.g. `results 4` solves case 4 alone); the same as `jaxtraj reproduc
 
 import sys
 
+import jaxtraj as jt
 from jaxtraj.reproduce import main
 
 if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
     main(*sys.argv[1:])

@@ -25,6 +25,9 @@ import optax
 
 import jaxtraj as jt
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
+
 TRUTH = {"c": 0.7, "q": 3.0}
 SAMPLES = jnp.linspace(0.0, 1.0, 41)
 

@@ -63,6 +63,9 @@ from jaxtraj import metaheuristics as mh
 from jaxtraj.baselines import solve_slsqp
 from jaxtraj.plot import pyplot
 
+if __name__ == "__main__":
+    jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
+
 TARGETS = ("mars", "venus", "mercury")
 METHODS = {
     # key: (label, kind)
@@ -127,7 +130,7 @@ def parse_args(argv=None):
         "--sqp-hessian",
         choices=("bfgs", "exact"),
         default="bfgs",
-        help="KalmanSQP's Hessian, with the line search (default bfgs; the runs recorded in the README)",
+        help="KalmanSQP's Hessian, with the line search (default bfgs; the runs recorded in docs/results.md)",
     )
     p.add_argument("--slsqp-maxiter", type=int, default=150, help="SLSQP iteration limit (default 150)")
     p.add_argument("--out", default=os.path.join("results", "solar_sail"), help="output folder")

@@ -573,6 +573,9 @@ def _reproduce(args):
 
 
 def main(argv=None):
+    from ._configure import configure_cpu_if_possible
+
+    configure_cpu_if_possible()  # a device per core and XLA's options (jt.configure_cpu)
     try:
         args = _parser().parse_args(argv)
         if args.command == "problems":
@@ -599,6 +602,9 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("jaxtraj: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of the output left (`jaxtraj problems | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 141
     finally:
         _HELD.close()
 

@@ -5,7 +5,11 @@ import tempfile
 import jax
 import pytest
 
-import jaxtraj  # noqa: F401  (turns on float64)
+import jaxtraj
+
+# The CPU set-up jaxtraj is tuned for (a device per core: the sharded-batch tests need
+# several; XLA options that halve compile times), before any JAX computation.
+jaxtraj.configure_cpu()
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -522,55 +522,90 @@ def _cpu_devices(code, **env):
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return int(proc.stdout.strip())
+    return int(proc.stdout.strip().split()[-1])
+
+
+def test_import_changes_nothing_global_but_float64():
+    """`import jaxtraj` leaves JAX's devices, its CPU device option and XLA_FLAGS as they were
+    (issue 52: a user's own JAX program is not reshaped by an import); only float64 is on."""
+    code = (
+        "import os, jax; {} print(os.environ.get('XLA_FLAGS', '<unset>')); "
+        "print(jax.config.jax_num_cpu_devices, jax.config.jax_enable_x64, len(jax.devices('cpu')))"
+    )
+    runs = []
+    for imports in ("", "import jaxtraj;"):
+        proc = subprocess.run(
+            [sys.executable, "-c", code.format(imports)],
+            env={**{k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, "PYTHONPATH": REPO},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        runs.append(proc.stdout.split("\n")[:2])
+    (flags_jax, line_jax), (flags_jt, line_jt) = runs
+    assert flags_jt == flags_jax == "<unset>"
+    assert line_jax.split()[::2] == line_jt.split()[::2] == ["-1", "1"]  # option unset, one device here
+    assert (line_jax.split()[1], line_jt.split()[1]) == ("False", "True")
 
 
 @pytest.mark.slow
-def test_import_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
-    """`import jaxtraj` gives JAX one CPU device per core (solve_batch and multistart then
-    use every core); the user's own count wins: set before (JAX_NUM_CPU_DEVICES, XLA_FLAGS),
-    after (`jax.config.update`, possible because the import runs no JAX computation), or by
-    JAXTRAJ_CPU_DEVICES; after a JAX computation the import changes nothing. (With jaxlib >=
+def test_configure_cpu_splits_the_cpu_into_one_device_per_core_unless_the_user_chose():
+    """`jt.configure_cpu()` gives JAX one CPU device per core (solve_batch and multistart then
+    use every core); the user's own count wins: `devices=N`, JAX_NUM_CPU_DEVICES, XLA_FLAGS,
+    JAXTRAJ_CPU_DEVICES. After a JAX computation it refuses, saying why, unless an earlier
+    call set up what it asks for. (With jaxlib >=
     0.11, where KalmanSQP's sharded batch program crashed, one device unless asked.)"""
     import jaxlib
 
     auto = 1 if tuple(int(x) for x in jaxlib.__version__.split(".")[:2]) >= (0, 11) else len(os.sched_getaffinity(0))
-    assert _cpu_devices("import jax, jaxtraj") == auto
-    assert _cpu_devices("import jax, jaxtraj", JAXTRAJ_CPU_DEVICES="2") == 2
-    assert _cpu_devices("import jax, jaxtraj; jax.config.update('jax_num_cpu_devices', 3)") == 3
-    assert _cpu_devices("import jax, jaxtraj", JAX_NUM_CPU_DEVICES="3") == 3
-    assert _cpu_devices("import jax, jaxtraj", XLA_FLAGS="--xla_force_host_platform_device_count=3") == 3
-    assert _cpu_devices("import jax, jaxtraj", JAXTRAJ_CPU_DEVICES="1") == 1
-    assert _cpu_devices("import jax; jax.numpy.ones(1); import jaxtraj") == 1
+    setup = "import jax, jaxtraj; jaxtraj.configure_cpu({})"
+    assert _cpu_devices(setup.format("")) == auto
+    assert _cpu_devices(setup.format(""), JAXTRAJ_CPU_DEVICES="2") == 2
+    assert _cpu_devices(setup.format("3")) == 3
+    assert _cpu_devices(setup.format(""), JAX_NUM_CPU_DEVICES="3") == 3
+    assert _cpu_devices(setup.format(""), XLA_FLAGS="--xla_force_host_platform_device_count=3") == 3
+    assert _cpu_devices(setup.format(""), JAXTRAJ_CPU_DEVICES="1") == 1
+    late = (
+        "import jax, jaxtraj; jax.numpy.ones(1)\ntry:\n jaxtraj.configure_cpu(2)\nexcept RuntimeError as e:\n print(e)"
+    )
+    assert _cpu_devices(late) == 1
+    again = "import jax, jaxtraj; jaxtraj.configure_cpu(2); jax.numpy.ones(1); jaxtraj.configure_cpu(2)"
+    assert _cpu_devices(again) == 2  # a second call that asks for what is set does nothing
+    with pytest.raises(AssertionError, match="must run before the first JAX computation"):
+        _cpu_devices("import jax, jaxtraj; jaxtraj.configure_cpu(2); jax.numpy.ones(1); jaxtraj.configure_cpu(3)")
+    with pytest.raises(ValueError, match="devices must be a positive int"):
+        jt.configure_cpu(0)
 
 
 @pytest.mark.slow
-def test_import_sets_the_xla_cpu_options_xla_accepts():
-    """`import jaxtraj` raises XLA:CPU's small-while-loop threshold and, on a jaxlib that knows the
-    flag (0.5.3 to 0.10), turns the fusion emitters off; XLA accepts both (it aborts on an
-    unknown flag: jaxlib 0.11.2 does on this one). JAXTRAJ_NO_XLA_TUNING=1 leaves XLA_FLAGS
-    alone; an option the user set stays theirs."""
+def test_configure_cpu_sets_the_xla_cpu_options_xla_accepts():
+    """`jt.configure_cpu()` raises XLA:CPU's small-while-loop threshold and, on a jaxlib that
+    knows the flag (0.5.3 to 0.10), turns the fusion emitters off; XLA accepts both (it aborts
+    on an unknown flag: jaxlib 0.11.2 does on this one). `xla_options=False` or
+    JAXTRAJ_NO_XLA_TUNING=1 leave XLA_FLAGS alone; an option the user set stays theirs."""
     import jaxlib
 
     version = tuple(int(x) for x in jaxlib.__version__.split(".")[:3])
     legacy = (0, 5, 3) <= version < (0, 11)
     code = (
-        "import os, jax.numpy as jnp, jaxtraj; print(float(jnp.sin(jnp.arange(3.0)).sum())); "
-        "print(os.environ.get('XLA_FLAGS', ''))"
+        "import os, jax.numpy as jnp, jaxtraj; jaxtraj.configure_cpu({}); "
+        "print(float(jnp.sin(jnp.arange(3.0)).sum())); print(os.environ.get('XLA_FLAGS', ''))"
     )
     threshold = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAJ_NO_XLA_TUNING")}
-    cases = [  # (extra environment, XLA_FLAGS expected after the import)
-        ({}, [threshold] + ["--xla_cpu_use_fusion_emitters=false"] * legacy),
-        ({"JAXTRAJ_NO_XLA_TUNING": "1"}, []),
+    cases = [  # (argument, extra environment, XLA_FLAGS expected after the call)
+        ("", {}, [threshold] + ["--xla_cpu_use_fusion_emitters=false"] * legacy),
+        ("xla_options=False", {}, []),
+        ("", {"JAXTRAJ_NO_XLA_TUNING": "1"}, []),
     ]
     if legacy:  # the user's own value of the flag stays
         cases.append(
-            ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, ["--xla_cpu_use_fusion_emitters=true", threshold])
+            ("", {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, ["--xla_cpu_use_fusion_emitters=true", threshold])
         )
-    for extra, expected in cases:
+    for argument, extra, expected in cases:
         proc = subprocess.run(
-            [sys.executable, "-c", code],
+            [sys.executable, "-c", code.format(argument)],
             env={**env, **extra, "PYTHONPATH": REPO},
             capture_output=True,
             text=True,
@@ -714,3 +749,35 @@ def test_a_finished_lane_asks_for_no_work(solver, monkeypatch):
         jax.effects_barrier()
         # live, the state asks for work (else the finished lanes' check would prove nothing)
         assert bool(calls) == (not done), (done, len(calls))
+
+
+def test_solve_batch_says_once_when_a_batch_leaves_cores_idle():
+    """On one CPU device of a host with several cores (no `jt.configure_cpu()`), the first
+    `solve_batch` with progress output says how to use them, and only the first; with a
+    device per core (this test process) or a GPU it says nothing."""
+    import jaxlib
+
+    from jaxtraj import _configure
+
+    cpu = jax.devices("cpu")
+    assert _configure.unused_cores_hint(cpu[:1]) is None  # conftest split the CPU: nothing idle
+    code = (
+        "import jax, numpy as np, jaxtraj as jt\n"
+        "from jaxtraj import _configure\n"
+        "d = jax.devices('cpu')\n"
+        "print(repr(_configure.unused_cores_hint(d)))\n"
+        "print(repr(_configure.unused_cores_hint(d)))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "JAXTRAJ_CPU_DEVICES")}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    first, second = proc.stdout.splitlines()[:2]
+    cores = len(os.sched_getaffinity(0))
+    splits = tuple(int(x) for x in jaxlib.__version__.split(".")[:2]) < (0, 11) and cores > 1
+    if splits:
+        assert f"one CPU device on {cores} cores" in first and "jt.configure_cpu()" in first
+    else:
+        assert first == "None"
+    assert second == "None"

@@ -29,11 +29,11 @@ How a batch runs:
   uninterrupted one does on the same devices (another device count or `lanes` can change
   results by round-off only). To read a finished folder back, call `solve_batch` again
   with the same inputs and `resume=True`: nothing is recomputed.
-* CPU cores: XLA runs one CPU device on (mostly) one core, so `import jaxtraj` splits the
-  host into one device per core (when JAX has not computed anything yet and the user chose
-  no count: `JAX_NUM_CPU_DEVICES`, `jax.config.update("jax_num_cpu_devices", N)` before or
-  after the import, `XLA_FLAGS=--xla_force_host_platform_device_count=N`, an initialized
-  `jax.distributed`, or `JAXTRAJ_CPU_DEVICES=N`); `solve_batch` shards over all of them.
+* CPU cores: XLA runs one CPU device on (mostly) one core, and `solve_batch` shards over
+  the devices JAX has: `jt.configure_cpu()`, called right after the imports, splits the
+  host into one device per core (or `JAX_NUM_CPU_DEVICES`, `jax.config.update(
+  "jax_num_cpu_devices", N)`, `XLA_FLAGS=--xla_force_host_platform_device_count=N`). Without
+  it, the first `solve_batch` that runs on one device of several cores says so.
 
 Several hosts (multi-host is the scaling path; there is no cluster code here). Start the same
 script on every host with the same inputs and call `jax.distributed.initialize` first; the

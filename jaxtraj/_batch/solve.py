@@ -13,6 +13,7 @@ from jax.sharding import Mesh
 
 from .. import io as _io
 from .._checks import check_memory, check_problem_and_control, check_solver_memory, memory_refusal
+from .._configure import unused_cores_hint
 from .._driver import HISTORY_BYTES, AbstractSolver
 from .._fingerprint import fingerprint, problem_fingerprint
 from .._implicit import differentiable_batch
@@ -177,6 +178,9 @@ def solve_batch(
                 else (None, None)
             )
             show = progress and writer
+            hint = unused_cores_hint(devices) if show else None
+            if hint:
+                print(hint, file=sys.stderr, flush=True)
             if show and on_disk:
                 print(
                     f"solve_batch: resuming {out}: {len(on_disk)}/{num_chunks} chunk(s) already done, loading them",
