@@ -297,6 +297,42 @@ def test_start_has_no_derivative_and_plain_solves_are_unchanged():
         np.testing.assert_array_equal(got, want)  # NaN where NaN (the unused history)
 
 
+@pytest.mark.slow
+def test_second_derivatives_forward_over_either_mode():
+    """Second derivatives by forward mode over forward or reverse mode (`jax.hessian` is
+    `jacfwd(jacrev)`): the restricted LQ optimum J* = 1/2 w h r^T M^-1 r (r = target - C x0)
+    has the Hessian w h [M^-1, -M^-1 C; -C^T M^-1, C^T M^-1 C] in (target, x0) and
+    d2J*/(dw dtarget) = h M^-1 r (NumPy); the minimum time tf* = 2 sqrt(d / g) its closed-form
+    second derivatives at a vertex (bounds active)."""
+    J, _, _, M, r = lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T)
+    h, w = LQ_T / LQ_K, 2.0
+    C = np.array([[1.0, LQ_T], [0.0, 1.0]])
+    Minv = np.linalg.inv(M)
+
+    def J_of(target, x0, weight):
+        return lq_solve(dict(LQ_THETA, target=target, x0=x0, w=weight)).objective
+
+    point = (LQ_ARGS["target"], jnp.asarray(LQ_X0), jnp.asarray(w))
+    H = jax.hessian(J_of, argnums=(0, 1, 2))(*point)
+    assert rel_err(H[0][0], w * h * Minv) < 1e-7
+    assert rel_err(H[0][1], -w * h * Minv @ C) < 1e-7
+    assert rel_err(H[1][1], w * h * C.T @ Minv @ C) < 1e-7
+    assert rel_err(H[0][2], h * Minv @ r) < 1e-7
+    assert abs(float(H[2][2])) < 1e-9 * J  # J* is linear in w
+    H_ff = jax.jacfwd(jax.jacfwd(J_of, argnums=0), argnums=0)(*point)
+    assert rel_err(H_ff, H[0][0]) < 1e-9
+
+    d, g = 1.5, 0.8
+
+    def tf_of(d, g):
+        return min_time({"d": d, "g": g})
+
+    (tdd, tdg), (_, tgg) = jax.hessian(tf_of, argnums=(0, 1))(jnp.asarray(d), jnp.asarray(g))
+    assert rel_err(tdd, -0.5 * d**-1.5 * g**-0.5) < 1e-7
+    assert rel_err(tdg, -0.5 * d**-0.5 * g**-1.5) < 1e-7
+    assert rel_err(tgg, 1.5 * d**0.5 * g**-2.5) < 1e-7
+
+
 @pytest.mark.parametrize("field", ["tf", "constraints", "max_constraint_error"])
 def test_every_float_field_has_a_derivative(field):
     """tf, the constraints (zero: they stay met) and max |E| (zero) of the LQ problem along
