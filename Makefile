@@ -34,10 +34,12 @@ test-isa: $(STAMP)
 	  XLA_FLAGS=--xla_cpu_max_isa=$$isa $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile -m "slow or not slow" $(ISA_TESTS) || exit 1; \
 	done
 
-# lint, format check, and the documentation site built with --strict (into a throwaway folder)
+# lint, format check, type check (basedpyright, basic mode, over jaxtraj/), and the documentation
+# site built with --strict (into a throwaway folder)
 check: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/basedpyright --pythonpath $(PY)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet --site-dir $$(mktemp -d)
 
 bench: $(STAMP)

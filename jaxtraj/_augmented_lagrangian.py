@@ -83,6 +83,8 @@ non-decreasing candidate is rejected.
     is far more accurate than that (its error is quadratic in the gradient's).
 """
 
+from typing import Any, cast
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -564,7 +566,9 @@ class AugmentedLagrangian(AbstractSolver):
             fn = al_value(problem, control, simulator, box, m, metric, self.method)
             # optax's L-BFGS stores the pair (z - z_prev, g - g_prev) without a curvature
             # check; the projection can make it non-positive: restart the memory then.
-            lb = state.opt_state[0][0]
+            # (`_init_opt`'s pair: the chain's states, L-BFGS's first, and the line search's; optax
+            # annotates states as any tree, their fields as any array-like: arrays here)
+            lb = cast(Any, state.opt_state)[0][0]
             s_, y_ = z - lb.params, g_z - lb.updates
             bad_pair = (lb.count > 0) & ~(s_ @ y_ > 1e-12 * jnp.linalg.norm(s_) * jnp.linalg.norm(y_))
             prior = jax.tree.map(lambda n, o: jnp.where(bad_pair, n, o), self._init_opt(z), state.opt_state)
@@ -576,11 +580,12 @@ class AugmentedLagrangian(AbstractSolver):
                 direction, prior[1], z, value=state.value, grad=g_z, value_fn=fn
             )
             opt_state = (dir_state, ls_state)
-            trials = ls_state.info.num_linesearch_steps.astype(jnp.int32)
+            trials = cast(Any, ls_state).info.num_linesearch_steps.astype(jnp.int32)  # (as `lb` above)
         else:
             updates, opt_state = opt.update(g_z, state.opt_state, z)
             trials = jnp.array(0, jnp.int32)
-        cand_a = box.project(metric.to_a(z + updates))
+        # (optax's updates have the parameters' structure: here one array)
+        cand_a = box.project(metric.to_a(z + cast(jax.Array, updates)))
         cand = self._evaluate(problem, control, cand_a, simulator)
         cand_value, cand_grad = augmented_lagrangian(cand, m)
         finite = (

@@ -34,7 +34,7 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | N
     **Returns:** the folder, or None if it cannot be created (nothing is changed then).
     """
     if folder is None:
-        folder = jax.config.jax_compilation_cache_dir or default_cache_folder()
+        folder = jax.config.jax_compilation_cache_dir or default_cache_folder()  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
     folder = os.fspath(folder)
     try:
         os.makedirs(folder, exist_ok=True)

@@ -6,6 +6,7 @@ import os
 import re
 
 import jax
+import jax.core
 import jax.numpy as jnp
 
 from ._problem import Problem
@@ -14,7 +15,7 @@ from .controls import AbstractControl, FixedFinalTime, FreeInitialState
 
 def require_float64():
     """Raise a RuntimeError unless JAX's float64 mode is on (jaxtraj turns it on at import)."""
-    if not jax.config.jax_enable_x64:
+    if not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
         raise RuntimeError(
             "jaxtraj needs float64: `jax_enable_x64` was turned off after importing jaxtraj. "
             "Call jax.config.update('jax_enable_x64', True)."
@@ -58,8 +59,14 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
     inner = control.control if isinstance(control, FreeInitialState) else control
     T = inner.final_time if isinstance(inner, FixedFinalTime) else None
     fits = free == problem.free_initial_state and (T is None) == (problem.final_time is None)
-    if fits and T is not None and not any(isinstance(v, jax.core.Tracer) for v in (T, problem.final_time)):
-        fits = float(T) == float(problem.final_time)
+    T_problem = problem.final_time  # (None exactly when T is, given `fits`)
+    if (
+        fits
+        and T is not None
+        and T_problem is not None
+        and not any(isinstance(v, jax.core.Tracer) for v in (T, T_problem))
+    ):
+        fits = float(T) == float(T_problem)
     if not fits:
         wants = []
         if problem.final_time is not None:

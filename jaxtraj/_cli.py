@@ -222,6 +222,7 @@ def _user_function(spec):
             # a module name that is the same in every process (`hash` is salted per process)
             key = hashlib.sha256(os.path.abspath(where).encode()).hexdigest()[:16]
             module_spec = importlib.util.spec_from_file_location(f"_jaxtraj_user_{key}", where)
+            assert module_spec is not None and module_spec.loader is not None  # (a .py file has a source loader)
             module = importlib.util.module_from_spec(module_spec)
             # its own folder on sys.path, as `python file.py` would have it (a problem file
             # that imports a helper module beside it, at import or in its function)

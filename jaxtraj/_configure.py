@@ -47,7 +47,7 @@ def configure_cpu(devices: int | None = None, *, xla_options: bool = True) -> in
     if devices is not None and (isinstance(devices, bool) or not isinstance(devices, int) or devices < 1):
         raise ValueError(f"configure_cpu: devices must be a positive int or None, got {devices!r}")
     tune = xla_options and not os.environ.get("JAXTRAJ_NO_XLA_TUNING")
-    chosen = jax.config.jax_num_cpu_devices
+    chosen = jax.config.jax_num_cpu_devices  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
     try:  # the public way to ask whether JAX's backends have started: a change is refused then
         jax.config.update("jax_num_cpu_devices", chosen + 1)
         jax.config.update("jax_num_cpu_devices", chosen)
@@ -110,7 +110,8 @@ def _missing_xla_cpu_options():
 def _default_device_count():
     if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
         return None
-    if jax.config.jax_num_cpu_devices != -1:  # set by the user (config or JAX_NUM_CPU_DEVICES)
+    # set by the user (config or JAX_NUM_CPU_DEVICES)
+    if jax.config.jax_num_cpu_devices != -1:  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
         return None
     if getattr(jax.distributed, "is_initialized", lambda: False)():  # a multi-host setup of its own
         return None

@@ -26,6 +26,7 @@ works; with one that is not `RK4` the derivatives in theta are explicit Jacobian
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
@@ -157,7 +158,8 @@ def _gap_curvature(control, a, nu_gaps):
     """nu^T d^2(knot gaps)/da^2 (zero for the built-in families, whose knots are affine)."""
     if nu_gaps.shape[0] == 0:
         return 0.0
-    return jax.hessian(lambda a: nu_gaps @ knot_gap_rows(control, a)[0])(a)
+    # (rows exist: `nu_gaps` has one multiplier per row, and is not empty)
+    return jax.hessian(lambda a: nu_gaps @ knot_gap_rows(control, a)[0])(a)  # pyright: ignore[reportOptionalSubscript]
 
 
 class KKTPoint(eqx.Module):

@@ -469,7 +469,12 @@ class KalmanSQP(AbstractSolver):
     @staticmethod
     def _stationary_multipliers(ev, B, d, active):
         """Least-squares solution of [H; C_a(active)]^T lam = -(G_a + B d)."""
-        A = ev.H if active is None else jnp.concatenate([ev.H, jnp.where(active[:, None], inequality_rows(ev)[1], 0.0)])
+        rows = inequality_rows(ev)
+        A = (
+            ev.H
+            if active is None or rows is None
+            else jnp.concatenate([ev.H, jnp.where(active[:, None], rows[1], 0.0)])
+        )
         return multipliers(A, ev.G_a + B @ d)
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):

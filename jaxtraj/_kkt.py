@@ -3,7 +3,10 @@
 least-squares multipliers, the gradient of the Lagrangian, the stationarity residual with
 multipliers of the right sign, the projected gradient and the SQP termination rule."""
 
+from typing import Literal, overload
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -185,6 +188,10 @@ def stationarity(ev, a, tol):
     return stationarity_multipliers(ev, a, tol)[0]
 
 
+@overload
+def kkt_residual(ev, a, tol, *, with_multipliers: Literal[False] = False) -> jax.Array: ...
+@overload
+def kkt_residual(ev, a, tol, *, with_multipliers: Literal[True]) -> tuple[jax.Array, jax.Array]: ...
 def kkt_residual(ev, a, tol, *, with_multipliers=False):
     """`stationarity`, or the complementarity max_i nu_i max(-C_i, 0) of its multipliers if
     larger: KalmanSQP's SUCCESS test. A row within `tol` of its bound counts as active, and

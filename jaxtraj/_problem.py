@@ -36,6 +36,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import checkify
@@ -63,6 +64,27 @@ def _indexes_by_value(jaxpr) -> bool:
                 if hasattr(inner, "eqns") and _indexes_by_value(inner):
                     return True
     return False
+
+
+class _Label:
+    """A string carried through pytree operations as a static leaf that takes no part in
+    equality or hashing: all labels compare equal. `eqx.filter_jit` (and so every jaxtraj
+    solver) keys its compilation cache on the static leaves' equality and hash, so a
+    problem's name never causes a recompilation."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __eq__(self, other):
+        return isinstance(other, _Label)
+
+    def __hash__(self):
+        return hash(_Label)
+
+    def __repr__(self):
+        return repr(self.text)
 
 
 class Problem(eqx.Module):
@@ -126,8 +148,8 @@ class Problem(eqx.Module):
     num_controls: int = 1
     objective: Callable = minimum_time
     args: Any = None
-    state_names: tuple[str, ...] | None = None
-    control_names: tuple[str, ...] | None = None
+    state_names: tuple[str, ...] = ()  # (set by `__init__`: the given names, else x1, x2, ...)
+    control_names: tuple[str, ...] = ()  # (set by `__init__`: the given names, else u1, u2, ...)
     control_lower: jax.Array | None = None
     control_upper: jax.Array | None = None
     path: Callable | None = None
@@ -139,7 +161,7 @@ class Problem(eqx.Module):
     free_initial_state: tuple[int, ...] = eqx.field(static=True, default=())
     _initial_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
     _control_box: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True, default=((), ()), repr=False)
-    _label: "_Label" = None  # the name; see `name`
+    _label: _Label = _Label("problem")  # the name; see `name`
 
     def __init__(
         self,
@@ -221,10 +243,11 @@ class Problem(eqx.Module):
             )
         # the bounds' values as static data: which channels are bounded, and whether a family
         # saturates within them, decide the structure of the compiled solvers (`_bounds.py`)
-        self._control_box = tuple(
+        box_lo, box_hi = (
             tuple(float(v) for v in (np.full(num_controls, fill) if b is None else np.asarray(b)))
             for b, fill in ((lo, -np.inf), (hi, np.inf))
         )
+        self._control_box = (box_lo, box_hi)
         self.path = path
         self.path_names = _names(path_names, "path_names")
         self.terminal_inequality = terminal_inequality
@@ -239,7 +262,7 @@ class Problem(eqx.Module):
         if tf_bounds is not None:
             self._add_tf_bounds(tf_bounds)
         if running_cost is not None:
-            self._add_running_cost()
+            self._add_running_cost(running_cost)
 
     @property
     def name(self) -> str:
@@ -266,17 +289,16 @@ class Problem(eqx.Module):
             ("terminal(tf, xf, args)", lambda t, x, u: self.terminal(t, x, self.args), (self.num_constraints,)),
             ("objective(tf, xf, args)", lambda t, x, u: self.objective(t, x, self.args), ()),
         ]
-        if self.path is not None:
-            checks.append(
-                ("path(t, x, u, args)", lambda t, x, u: self.path(t, x, u, self.args), (len(self.path_names),))
-            )
-        if self.running_cost is not None:
-            checks.append(("running_cost(t, x, u, args)", lambda t, x, u: self.running_cost(t, x, u, self.args), ()))
-        if self.terminal_inequality is not None:
+        path, running_cost, terminal_inequality = self.path, self.running_cost, self.terminal_inequality
+        if path is not None:
+            checks.append(("path(t, x, u, args)", lambda t, x, u: path(t, x, u, self.args), (len(self.path_names),)))
+        if running_cost is not None:
+            checks.append(("running_cost(t, x, u, args)", lambda t, x, u: running_cost(t, x, u, self.args), ()))
+        if terminal_inequality is not None:
             checks.append(
                 (
                     "terminal_inequality(tf, xf, args)",
-                    lambda t, x, u: self.terminal_inequality(t, x, self.args),
+                    lambda t, x, u: terminal_inequality(t, x, self.args),
                     (len(self.terminal_inequality_names),),
                 )
             )
@@ -303,8 +325,9 @@ class Problem(eqx.Module):
             x0, u0 = jnp.asarray(self.x0, jnp.float64), jnp.zeros(nu, jnp.float64)
             for label, fn in indexed:
                 error, _ = checkify.checkify(fn, errors=checkify.index_checks)(jnp.float64(0.0), x0, u0)
-                if error.get() is not None:
-                    raise ValueError(f"`{label}` indexes outside an array: {error.get().strip()}")
+                message = error.get()
+                if message is not None:
+                    raise ValueError(f"`{label}` indexes outside an array: {message.strip()}")
 
     @property
     def initial_state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -397,9 +420,10 @@ class Problem(eqx.Module):
             + (("tf upper bound",) if above else ())
         )
 
-    def _add_running_cost(self):
-        """The Mayer form: the accumulated cost as the last state (see the module docs)."""
-        self.dynamics = _CostDynamics(self.dynamics, self.running_cost)
+    def _add_running_cost(self, running_cost: Callable):
+        """The Mayer form: the accumulated cost as the last state (see the module docs);
+        `running_cost` is `self.running_cost`, not None."""
+        self.dynamics = _CostDynamics(self.dynamics, running_cost)
         self.objective = _CostObjective(self.objective)
         self.terminal = _OnUserState(self.terminal)
         if self.path is not None:
@@ -472,27 +496,6 @@ class _TimeBounds(eqx.Module):
         rows += [] if self.lower is None else [jnp.reshape(self.lower - tf, (1,))]
         rows += [] if self.upper is None else [jnp.reshape(tf - self.upper, (1,))]
         return jnp.concatenate(rows)
-
-
-class _Label:
-    """A string carried through pytree operations as a static leaf that takes no part in
-    equality or hashing: all labels compare equal. `eqx.filter_jit` (and so every jaxtraj
-    solver) keys its compilation cache on the static leaves' equality and hash, so a
-    problem's name never causes a recompilation."""
-
-    __slots__ = ("text",)
-
-    def __init__(self, text: str):
-        self.text = text
-
-    def __eq__(self, other):
-        return isinstance(other, _Label)
-
-    def __hash__(self):
-        return hash(_Label)
-
-    def __repr__(self):
-        return repr(self.text)
 
 
 def _bound(value, nu, name, what="num_controls"):

@@ -68,7 +68,7 @@ def forward_jacobian(problem, control, a, simulator):
     if basis is None:
         segments = (data, data_a)
 
-        def linearized(x, x_a, theta, theta_a):
+        def linearized(x, x_a, theta, theta_a):  # pyright: ignore[reportRedeclaration]  (one per branch)
             return simulator.integrate_linearized(field, theta, theta_a, x, x_a)
     else:
         segments = (data, basis, jnp.einsum("kir,kip->krp", basis, data_a))

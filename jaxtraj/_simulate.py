@@ -13,6 +13,7 @@ state (x, dx/da).
 
 import abc
 from collections.abc import Callable
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -31,9 +32,10 @@ class AbstractSimulator(eqx.Module):
     """Integrates one segment's vector field `field(tau, y)` over tau in [0, 1]."""
 
     @abc.abstractmethod
-    def integrate(self, field: Callable, y0, dense: bool):
+    def integrate(self, field: Callable, y0, dense: bool) -> tuple[Any, Any, jax.Array]:
         """Return `(y1, ys, ok)`: the state at tau = 1, the dense states on `dense_grid()`
-        (or None) and a boolean that is False when the integrator itself failed."""
+        (or None) and a boolean that is False when the integrator itself failed (the states
+        are pytrees of `y0`'s structure)."""
 
     @abc.abstractmethod
     def dense_grid(self) -> np.ndarray:

@@ -1,7 +1,10 @@
 """Status codes shared by simulation, sensitivities and every solver."""
 
+from typing import TYPE_CHECKING, cast
+
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -10,6 +13,8 @@ class _Iterable(type(eqx.Enumeration)):
     """Equinox's enumeration metaclass, plus the item names in declaration order (`names`:
     the string attributes of the class body, the ones equinox makes items) and iteration
     over the items."""
+
+    names: tuple[str, ...]  # (set by `__new__`)
 
     def __new__(mcs, name, bases, namespace, **kwargs):
         names = tuple(k for k, v in namespace.items() if isinstance(v, str) and not k.startswith("__"))
@@ -63,7 +68,10 @@ def failed(status):
     return Status.where(status == Status.SUCCESS, Status.NONFINITE, status)
 
 
-_Item = type(Status.SUCCESS)  # equinox's EnumerationItem (not exported by name)
+if TYPE_CHECKING:  # (equinox declares its items to type checkers as members of an `enum.Enum`)
+    from equinox._enum import EnumerationItem as _Item
+else:
+    _Item = type(Status.SUCCESS)  # equinox's EnumerationItem (not exported by name)
 
 
 class _IndexableItem(_Item):
@@ -73,6 +81,10 @@ class _IndexableItem(_Item):
     `Status.where`, `isinstance(x, jt.Status)`, the pytree layout), so a result's status
     can be indexed like the result. No `__len__`: an unbatched status must stay truthy-safe.
     """
+
+    if TYPE_CHECKING:  # the dataclass's constructor (equinox declares a one-argument one to type checkers)
+
+        def __init__(self, _value, _enumeration): ...
 
     def _batch_size(self, what: str) -> int:
         if jnp.ndim(self._value) == 0:
@@ -95,13 +107,14 @@ class _IndexableItem(_Item):
             yield self[i]
 
 
-def as_indexable(status):
+def as_indexable(status) -> Status:
     """`status` as an item that indexes along its batch axis (`sols.status[i]`): the
     converter of every result's `status` field. Anything else is returned unchanged (the
     field's own checks report it)."""
     if isinstance(status, _Item) and not isinstance(status, _IndexableItem):
-        return _IndexableItem(status._value, status._enumeration)
-    return status
+        status = _IndexableItem(status._value, status._enumeration)
+    # (an item of `Status` is one still: equinox's `isinstance` checks the item's enumeration)
+    return cast(Status, status)
 
 
 #: The item names in declaration order ("SUCCESS", "MAX_ITERATIONS", ...).

@@ -14,6 +14,7 @@ CasADi sees the JAX evaluation as a black box with first derivatives).
 
 import dataclasses
 import time
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -74,7 +75,7 @@ class _CachedEvaluation:
     def __init__(self, problem, control, simulator, method):
         self._fn = lambda a: evaluate_jitted(problem, control, a, simulator, method)
         self._key = None
-        self._value = None
+        self._value: dict[str, Any] = {}  # the evaluation at `_key` (set by the first call: no key is None)
         self.count = 0
         self.history = []
 

@@ -18,6 +18,7 @@ import zipfile
 
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from ._checks import require_float64
 from ._simulate import Trajectory
@@ -231,7 +232,7 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     }
     if sol.max_path_constraint is not None:
         outputs["max_path_constraint"] = float(sol.max_path_constraint)
-        outputs["max_path_time"] = float(sol.max_path_time)
+        outputs["max_path_time"] = float(sol.max_path_time)  # pyright: ignore[reportArgumentType]  (set with max_path_constraint)
     summary = {
         "problem": problem.name,
         "inputs": inputs or {},
@@ -268,7 +269,8 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
             raise ValueError(f"`{key}` cannot be written as JSON: {e}") from None
     with staged_folder(folder) as stage:
         arrays_path = os.path.join(stage, "arrays.npz")
-        atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
+        # (the checker matches `**arrays` to savez's `allow_pickle` too; no key is "allow_pickle")
+        atomic_write(arrays_path, lambda f: np.savez(f, **arrays))  # pyright: ignore[reportArgumentType]
         summary["arrays_sha256"] = _sha256(arrays_path)
         summary = _jsonable(summary)
         text = json.dumps(summary, indent=2, allow_nan=False).encode()
@@ -277,7 +279,8 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
 
 
 def _describe(value) -> str:
-    shape = np.shape(getattr(value, "tf", getattr(value, "knots", None)))
+    # (np.shape(None) is (): NumPy's annotations leave None out)
+    shape = np.shape(getattr(value, "tf", getattr(value, "knots", None)))  # pyright: ignore[reportArgumentType, reportCallIssue]
     return f"{type(value).__name__}" + (f" with a batch axis {shape}" if shape else "")
 
 
@@ -343,7 +346,7 @@ def load(folder):
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{arrays_path}: damaged ({e}).") from None
 
-    def array(key, ndim, dtype=np.float64):
+    def array(key, ndim, dtype: npt.DTypeLike = np.float64):
         if key not in arrays:
             raise ValueError(f"{arrays_path}: `{key}` is missing.")
         value = arrays[key]

@@ -8,6 +8,7 @@ Used by `jaxtraj reproduce` and `examples/earth_mars_thesis.py`.
 
 import os
 import time
+from collections.abc import Iterable
 
 import jax
 import numpy as np
@@ -19,7 +20,7 @@ from .baselines import solve_slsqp
 from .problems import earth_mars as EM
 
 
-def reproduce(cases=range(1, 8), verbose=True):
+def reproduce(cases: Iterable[int] = range(1, 8), verbose=True):
     rows = []
     for n in cases:
         prob, ctrl, a0 = EM.thesis_case(n)

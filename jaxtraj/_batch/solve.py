@@ -7,6 +7,7 @@ import time
 from collections.abc import Sequence
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
@@ -229,6 +230,7 @@ def solve_batch(
                         file=sys.stderr,
                         flush=True,
                     )
+            assert results is not None  # (set by the first chunk; `_check_a0s` makes n >= 1)
             results.reverse()  # convert leaf by leaf, freeing each host copy (peak: one leaf twice)
             return jax.tree.unflatten(treedef, [jnp.asarray(results.pop()) for _ in range(len(results))])
 

@@ -192,8 +192,8 @@ class MultistartResult:
         ]
         counts = {name: int(np.sum(np.asarray(sols.status == getattr(Status, name)))) for name in STATUS_NAMES}
         lines.append("status: " + ", ".join(f"{k} {v}" for k, v in counts.items() if v))
-        if self.best_index >= 0:
-            b = self.best
+        b = self.best  # (None exactly when best_index < 0)
+        if b is not None:
             lines.append(
                 f"best: start {self.best_index}, objective {float(b.objective):.10g}, "
                 f"max|E| {float(b.max_constraint_error):.2e}, {int(b.iterations)} iterations"

@@ -5,6 +5,7 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 
 from .._checks import as_float64
@@ -61,7 +62,9 @@ class ThrustErrors(AbstractExecutionErrors):
     thrust_key: str | None
     angle_index: int
 
-    def __init__(self, sigma_magnitude=0.01, sigma_pointing_deg=1.0, *, thrust_key="thrust", angle_index=0):
+    def __init__(
+        self, sigma_magnitude=0.01, sigma_pointing_deg=1.0, *, thrust_key: str | None = "thrust", angle_index=0
+    ):
         self.sigma_magnitude = _sigma("sigma_magnitude", sigma_magnitude)
         self.sigma_pointing = jnp.deg2rad(_sigma("sigma_pointing_deg", sigma_pointing_deg))
         self.thrust_key = thrust_key

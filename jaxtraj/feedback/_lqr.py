@@ -2,6 +2,7 @@
 covariance propagation."""
 
 from collections.abc import Callable
+from typing import cast
 
 import diffrax
 import equinox as eqx
@@ -177,9 +178,10 @@ def _continuous_riccati(field, Qf, t0, tf, ts, rtol, atol, max_steps, adjoint, s
         max_steps=max_steps,
         adjoint=adjoint,
     )
-    S = symmetrize(sol.ys[0][::-1])
+    ys = cast(tuple[jax.Array, jax.Array], sol.ys)  # (not None: `saveat` asks for the states at `ts`)
+    S = symmetrize(ys[0][::-1])
     K = jax.vmap(field.gain)(ts, S)
-    return LQRGains(ts=ts, S=S, K=K, c=sol.ys[1][::-1])
+    return LQRGains(ts=ts, S=S, K=K, c=ys[1][::-1])
 
 
 def discrete_lqr(As, Bs, Q, R, Qf, *, multiplicative=None, additive=None) -> DiscreteLQRGains:

@@ -2,6 +2,7 @@
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -298,7 +299,7 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
         x0, xf, xs, _, du2 = rollout(
             problem, control, noise, grid, x_ref[0], x_ref[:-1], K, jax.random.fold_in(key, i), save
         )
-        return xf, (jnp.concatenate([x0[None], xs]) if save else None), du2
+        return xf, (jnp.concatenate([x0[None], xs]) if xs is not None else None), du2  # (xs: None unless save)
 
     xfs, xs, du2 = jax.vmap(run)(jnp.arange(n))
     E = jax.vmap(lambda xf: problem.terminal(tf, xf, problem.args))(xfs)
@@ -306,7 +307,7 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
     E_mean, E_cov, E_pct = _masked_stats(E, finite, levels)
     x_mean, x_cov, _ = _masked_stats(xfs, finite, levels[:0])
     dispersion = None
-    if save:
+    if xs is not None:  # (save: the runs' states came back)
         N = grid.tau.shape[0]
         idx = np.unique(np.append(np.arange(0, N + 1, stride), N))
         xs = jnp.where(finite[:, None, None], xs[:, idx], jnp.nan)

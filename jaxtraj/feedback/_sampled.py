@@ -1,5 +1,7 @@
 """The control-sample grid and one sampled-data step of the closed loop."""
 
+from typing import Literal, cast, overload
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -64,7 +66,16 @@ class Noise(eqx.Module):
     L0: jax.Array | None  # square root of the initial-state covariance
 
 
-def rollout(problem, control, noise, grid, x_start, x_ref, K, key, save):
+# (the overloads: `xs` and `dus` are arrays when `save` is True, else None)
+@overload
+def rollout(
+    problem, control, noise, grid, x_start, x_ref, K, key, save: Literal[True]
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]: ...
+@overload
+def rollout(
+    problem, control, noise, grid, x_start, x_ref, K, key, save: bool
+) -> tuple[jax.Array, jax.Array, jax.Array | None, jax.Array | None, jax.Array]: ...
+def rollout(problem, control, noise, grid, x_start, x_ref, K, key, save: bool):
     """One run over the sample grid from the nominal initial state `x_start` (dispersed by
     the noise). `K=None`: no feedback; `key=None`: no noise.
 
@@ -102,7 +113,7 @@ def rollout(problem, control, noise, grid, x_start, x_ref, K, key, save):
 
     inputs = (grid.theta, grid.tau, x_ref, K_seq, grid.dt, phi, q, dt_safe, jnp.arange(N))
     (xf, _, du2), out = lax.scan(body, (x0, xi, jnp.zeros((m,))), inputs)
-    xs, dus = out if save else (None, None)
+    xs, dus = cast("tuple[jax.Array, jax.Array]", out) if save else (None, None)  # (`body` saves a pair if save)
     return x0, xf, xs, dus, du2
 
 

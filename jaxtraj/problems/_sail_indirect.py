@@ -123,6 +123,7 @@ def shoot(radius, a0, mu, tf_guess, pitch_guesses_deg, rtol, dense_points) -> In
             best = (sol.x, res)
         if np.max(np.abs(res)) <= 1e-9:
             break
+    assert best is not None  # (`pitch_guesses_deg` is not empty: `solve_indirect` checks it)
     z, res = best
     dense = integrate(z, dense=True)
     t = np.linspace(0.0, z[3], dense_points)

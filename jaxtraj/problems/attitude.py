@@ -61,6 +61,7 @@ layout [tf, c_0^1..c_K^1, c_0^2..c_K^2, c_0^3..c_K^3], clipped at the torque bou
 """
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -242,7 +243,7 @@ def problem(
         "torque_unit": f64(torque_unit),
     }
     bound = None if torque_max is None else torque_max / torque_unit
-    common = dict(
+    common: dict[str, Any] = dict(
         num_controls=3,
         control_names=tuple(f"torque {i} [{torque_unit:g} N m]" for i in (1, 2, 3)),
         control_lower=None if bound is None else -bound,

@@ -19,6 +19,7 @@ state-dependent field (Zermelo). `benchmarks/gallery.py` solves them all with ev
 """
 
 import dataclasses
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -159,7 +160,10 @@ def brachistochrone_time(dx=10.0, dy=5.0, g=9.80665) -> float:
     (phi - sin phi) / (1 - cos phi) = dx / dy, R = dy / (1 - cos phi_f), T = phi_f sqrt(R / g)."""
     import scipy.optimize
 
-    phi = scipy.optimize.brentq(lambda p: (p - np.sin(p)) / (1.0 - np.cos(p)) - dx / dy, 1e-6, 2 * np.pi - 1e-6)
+    # (a float: without `full_output` brentq returns the root alone)
+    phi = cast(
+        float, scipy.optimize.brentq(lambda p: (p - np.sin(p)) / (1.0 - np.cos(p)) - dx / dy, 1e-6, 2 * np.pi - 1e-6)
+    )
     return float(phi * np.sqrt(dy / (1.0 - np.cos(phi)) / g))
 
 
