@@ -20,11 +20,19 @@ def _values_but_times(control):
     return idx, tuple(r % control.channels for r in range(len(idx)))
 
 
+def _times(tf, K):
+    """The K + 1 equally spaced times from 0 to `tf` (inf past float64's range: such a start
+    is refused as a non-finite `a`, with the argument's name, not as NumPy's warning)."""
+    with np.errstate(over="ignore"):
+        return tf * np.arange(K + 1) / K
+
+
 def _channel_line(tf, u_start, u_end, t, q):
     """The straight line at the times `t`, shape `(len(t), q)`; `u_start`, `u_end`: a number
     or one per channel."""
     us, ue = (np.broadcast_to(np.asarray(v, dtype=np.float64), (q,)) for v in (u_start, u_end))
-    return _line(tf, us[None], ue[None], np.asarray(t)[:, None])
+    with np.errstate(over="ignore", invalid="ignore"):  # (inf times: see `_times`)
+        return _line(tf, us[None], ue[None], np.asarray(t)[:, None])
 
 
 def _check_segments(segments, name="segments"):
@@ -130,7 +138,7 @@ class PiecewiseLinear(AbstractControl):
         """`u_start`, `u_end`: a number or one per channel."""
         _check_guess(tf)
         K = self.segments
-        t = tf * np.arange(K + 1) / K
+        t = _times(tf, K)
         u = _channel_line(tf, u_start, u_end, t, self.channels)  # (K + 1, q)
         if self.continuous:
             parts = [u.reshape(-1)] + ([t[1:-1]] if self.free_times else []) + [[tf]]
@@ -226,7 +234,7 @@ class PiecewiseParabolic(AbstractControl):
         """`u_start`, `u_end`: a number or one per channel."""
         _check_guess(tf)
         K, q = self.segments, self.channels
-        t = tf * np.arange(K + 1) / K
+        t = _times(tf, K)
         u = _channel_line(tf, u_start, u_end, t, q)  # (K + 1, q)
         slope = np.broadcast_to((u[-1] - u[0]) / tf, (K, q))
         arcs = np.concatenate([u[:-1], slope, u[1:]], axis=1)
@@ -307,7 +315,7 @@ class PiecewiseConstant(AbstractControl):
         number or one per channel)."""
         _check_guess(tf)
         K = self.segments
-        t = tf * np.arange(K + 1) / K
+        t = _times(tf, K)
         levels = _channel_line(tf, u_start, u_end, 0.5 * (t[:-1] + t[1:]), self.channels)  # (K, q)
         if self.free_times:
             return jnp.asarray(np.concatenate([levels, t[1:, None]], axis=1).reshape(-1))
