@@ -5,82 +5,15 @@ The restricted problem is
     minimize G(a)   subject to   E(a) = 0 (terminal),   C(a) <= 0 (path on the grid, terminal),
                                  a in the parameter box B (control bounds, ordered times).
 
-**Augmented Lagrangian.** The seed's eq. 9, L_A = f - lambda^T h + sum_i mu_i h_i^2 with one
-penalty per constraint, is used for the equalities (written with rho_i = 2 mu_i); the
-inequality rows (`inequality_block`: the path constraints at every grid point, then the
-terminal inequalities D <= 0, which include the bounds of a free tf), one multiplier per row
-and one penalty per row group (a path component over the whole grid, a terminal inequality),
-enter through the Powell-Hestenes-Rockafellar term:
+The equalities enter with one penalty each, the inequality rows through the
+Powell-Hestenes-Rockafellar term, all scaled by their gradient norms at a0
+(`constraint_scale`). Outer iterations update the multipliers and grow the penalties by
+ALGENCAN's rule; inner iterations (one per `step`) are `optax.lbfgs` or `optax.adam` steps in
+coordinates preconditioned by the Gauss-Newton curvature of the penalty terms, on gradients
+assembled from the forward sensitivities (`al_value`, a `jax.custom_vjp`). The parameter box
+(`ParameterBox`) is kept by projection.
 
-    L_A(a) = G - lambda^T E + sum_i rho_i/2 E_i^2
-                 + sum_j (max(0, nu_j + sigma_j C_j)^2 - nu_j^2) / (2 sigma_j).
-
-E and C here are *scaled*: each E_i is divided by the norm of its gradient at a0, each row
-group by its largest gradient norm at a0 (over the grid for a path component;
-`constraint_scale`), so that one penalty value means the same curvature for every constraint
-(rates in rad/s and a final time in seconds alike). The feasibility tests use the unscaled
-values.
-
-**Outer iterations.** lambda starts at the least-squares estimate G_a = lambda^T H, nu at 0,
-the penalties at ALGENCAN's 10 max(1, |G|) / max(1, 1/2 |E|^2 + 1/2 |C+|^2) (clipped to
-[1e-8, 1e8]) unless `penalty_init` is given. When an inner minimization ends: lambda <-
-lambda - rho E, nu <- max(0, nu + sigma C) (clipped to `multiplier_max`); after a *solved*
-inner problem, a penalty grows by `penalty_growth` where its infeasibility (|E_i|, resp.
-max_j |max(C_j, -nu_j / sigma_j)| over its group, which also measures complementarity) did
-not fall below `feasibility_ratio` times its value at the previous outer iteration
-(ALGENCAN's rule, per component as the seed's vector mu suggests; per path *component*, not
-per grid point: the contact point of a touching constraint moves between grid points, which a
-per-point rule reads as stagnation). The inner tolerance starts at `inner_tol_init` and shrinks by
-`inner_tol_shrink` per outer iteration down to `gtol`.
-
-**Inner iterations** (one per `step`), in preconditioned coordinates z = L^T (a - a_k) with
-L L^T = M = `curvature` I + sum rho_i h_i h_i^T + sum_(active j) sigma c_j c_j^T, the
-Gauss-Newton curvature of the penalty terms at the start a_k of the outer iteration (the
-Gauss-Newton approximation of the seed's ref. [2]); without it (`precondition=False`) L-BFGS
-meets a condition number ~ penalty / curvature of G and needs far more steps (docs/history.md). `inner="lbfgs"`: one
-iteration of `optax.lbfgs` (`scale_by_lbfgs`, then its zoom line search, with the largest
-step limited so that no parameter moves by more than `max_step`: without that limit the
-zoom search's step doubling on the early, nearly linear subproblems of minimum-time problems
-lands in other basins). `inner="adam"`: one
-`optax.adam` update.
-The line search calls `al_value`, a `jax.custom_vjp` scalar function whose forward pass
-integrates once with forward sensitivities (`evaluate_restricted`) and whose gradient is
-assembled from G_a, H and C_a: no reverse mode goes through the integrator. Each step then
-evaluates the projected new point (which also gives the E and C of the history and of the
-outer update), so an L-BFGS step costs 1 + (line-search trials) integrations, an Adam step one.
-L-BFGS memory restarts at each outer iteration (new coordinates), after a rejected step, and
-when a stored pair has no positive curvature (optax does not check).
-
-**Box by projection** (`ParameterBox`). Parameters that are control values (the family's
-`value_indices`: node values of `PiecewiseLinear`, end values of `PiecewiseParabolic` arcs,
-levels of `PiecewiseConstant`, coefficients of `SaturatedSpline`, intersected with its own
-`limits`) are kept in [problem.control_lower, problem.control_upper]; the slopes of parabolic
-arcs are free (so a parabola may bulge past a bound between its ends). Times: a lone tf is kept >= K
-`min_duration`, free knot times t_1 < ... < t_K are kept at least `min_duration` apart by
-t_k <- max(t_k, t_{k-1} + min_duration) (a cumulative max), and durations are kept >=
-`min_duration`. The start a0 is projected first, and every new iterate. The gradient handed to
-the inner minimizer is the *reduced* gradient (components at a bound whose descent direction
-leaves the box are zeroed), so the search treats such a bound as binding; the convergence
-measures use the same reduced gradient. A family with no control-value parameters and no
-limits of its own inside the declared control bounds cannot honor them: the solver raises a
-ValueError.
-
-**Status.** SUCCESS: max |E_i| <= `ctol`, max_j max(C_j, -nu_j / sigma_j) <= `ctol` over
-every inequality row and the reduced gradient of the Lagrangian at the updated multipliers (=
-that of L_A at the old ones), in the scaled parameters a_i / max(|a_i|, 1) as every solver's (`jaxtraj._kkt.stationarity`),
-<= `gtol` (1 + |G|). STALLED: an outer iteration whose inner loop could not decrease L_A at all
-(two rejected steps in a row, none accepted) while feasible. DIVERGED: a parameter or |G|
-past 1e20 (`_status.DIVERGENCE`, IPOPT's `diverging_iterates_tol` rule, shared by every
-solver): the search stops there, else a problem unbounded below, or one whose dynamics blow
-up off the feasible region, runs to the step limit with ever larger numbers. MAX_ITERATIONS: `max_outer` outer
-iterations or `max_steps` steps. NONFINITE: non-finite start. A non-finite or (L-BFGS)
-non-decreasing candidate is rejected.
-
-!!! note "Accuracy floor"
-    The line search compares values of L_A, which round-off resolves to ~1e-16 |L_A|; the
-    reduced gradient cannot be driven much below ~sqrt(eps |L_A| x curvature) that way
-    (5e-8..1e-6 on the library's problems), hence the default `gtol` = 1e-6. The objective
-    is far more accurate than that (its error is quadratic in the gradient's).
+(The algorithm, its history and measurements: docs/solvers/augmented-lagrangian.md.)
 """
 
 from typing import Any, cast
@@ -161,7 +94,7 @@ def _stationarity(box: ParameterBox, a, grad):
 
 
 def parameter_box(problem, control, min_duration: float = 1e-6) -> ParameterBox:
-    """The `ParameterBox` of `control`'s parameters for `problem` (see the module docs), from
+    """The `ParameterBox` of `control`'s parameters for `problem` (see docs/solvers/augmented-lagrangian.md), from
     the family's declared layout (`value_indices`, `limits`, `time_layout`). Pure (usable
     inside jit: the problem's bounds may be traced).
 
@@ -205,7 +138,7 @@ class Multipliers(eqx.Module):
     `nu` (R,) for the inequality rows C <= 0 (`inequality_block`: the path constraints on the
     grid, then the terminal inequalities) and one penalty `sigma` (g,) per row group (a path
     component, a terminal inequality); `e_scale` (l,), `c_scale` (g,): the constraint scaling
-    (module docs)."""
+    (docs/solvers/augmented-lagrangian.md)."""
 
     lam: jax.Array
     rho: jax.Array
@@ -242,7 +175,7 @@ def _group_max(values, groups, num_groups):
 
 
 def augmented_lagrangian(ev: Evaluation, m: Multipliers):
-    """`(L_A, dL_A/da)` at an evaluation (module docs), assembled from G_a, H and the
+    """`(L_A, dL_A/da)` at an evaluation (docs/solvers/augmented-lagrangian.md), assembled from G_a, H and the
     inequality rows' Jacobian, with the scaled constraints e_scale E and c_scale C."""
     C, C_a, groups = inequality_block(ev)
     E, H = m.e_scale * ev.E, m.e_scale[:, None] * ev.H
@@ -266,7 +199,7 @@ def constraint_scale(rows, floor=1e-3):
 
 
 class Metric(eqx.Module):
-    """Preconditioned coordinates z = L^T (a - center), M = L L^T (module docs): the inner
+    """Preconditioned coordinates z = L^T (a - center), M = L L^T (docs/solvers/augmented-lagrangian.md): the inner
     minimizer works on z, where the penalty terms' Gauss-Newton curvature is the identity."""
 
     center: jax.Array
@@ -376,7 +309,7 @@ class _State(eqx.Module):
 
 
 class AugmentedLagrangian(AbstractSolver):
-    """Augmented-Lagrangian method with an optax inner minimizer (see the module docs).
+    """Augmented-Lagrangian method with an optax inner minimizer (see docs/solvers/augmented-lagrangian.md).
 
     Fields:
 

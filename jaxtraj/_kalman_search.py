@@ -9,56 +9,9 @@ run the *final* checks: accept, or shrink Da by the quadratic-model factor and r
 first step's candidate is the start itself (`init` integrates nothing, so the program holds
 the evaluation kernel once).
 
-Decisions where the OCR of the source is ambiguous or silent (each marked "OCR:" below):
-
-* Prior covariance [4.3]: P_ii = 2 beta_i e_e^2 + beta_p,i rho^2 |G_a|^2 with the *full*
-  squared gradient norm (per-component G_a,i^2 would make beta_p0 meaningless for the
-  parameters with G_a,i = 0, which is the group it exists for).
-* Correction fractions [3.35-3.36]: s_bar_i is the positive root of
-  (rho h_i G_a - s E_i)^2 = e_m^2/3 + h_i P h_i; it exists because beta_p >= 1 [3.30].
-* Time-ordering observation [C.4-C.5]: on h* = e_i - e_{i+1} (the *approach* of two knots),
-  z* = (t_{i+1} - t_i) / a_t with variance z*^2 / 12, filtered after the regular
-  observations whenever the increment would make t_i + Dt_i >= t_{i+1} + Dt_{i+1}. Our
-  addition: a gap that would still lose more than half its length (`gap_keep`) is observed
-  without noise at half its length, so that it is held while the other parameters move on;
-  if the order is still violated the increment is scaled so that every gap keeps at least
-  1/(2 a_t) of its length. Without the held half, a few large steps on the edge of the e_a
-  band (rho re-tuned up to rho_max) closed a gap to zero, each keeping 1/(2 a_t) = 1/20 of
-  it, and a zero-length level has no gradient to reopen it: case 7 STALLED at 3.34274 from
-  1 of 11 round-off-perturbed starts (issue 17). Scaling the whole step instead (the trust
-  region's floor) throttles every parameter and stalled case 7 from every start.
-* Step shrinking [4.40, 4.44, 4.47]: the quadratic model in alpha is solved on a fixed
-  grid of alphas (largest admissible one), never below `min_shrink`.
-* Constraint-change cap [4.27-4.28]: the room for the predicted change of E_i is
-  2/3 (f_ea e_a - |E_i|) + |E_i| (the literal reading freezes the search at the band's edge).
-* Adaptation [B.1, B.2]: rho is multiplied by `rho_increase` after an accepted step whose
-  nonlinearity was small (factor e_gamma = `linearity_ratio`) with no rejection in the two
-  previous steps; the betas are multiplied by `beta_decrease` (floor 1) after an accepted
-  minimum-search step that reduced every constraint component [B.5]. The optional extra
-  objective observation of [B.6] (IOPT = 2) is not implemented.
-* Constraint tolerance schedule: the thesis converged at e_a = 1e-2..1e-3 and restarted
-  with 1e-3..1e-4. Here the search starts at `e_a_start` and, each time the minimum search
-  converges, e_a is divided by `e_a_shrink` (capture phase again) until `e_a` is reached.
-* Convergence tests: SUCCESS is decided by the projected gradient [3.62] alone. [4.15]
-  (|G_a| small) is implied by it (|V G_a| <= |G_a|); [4.20] and the Chebyshev test [4.21]
-  only gate the thesis's check of [3.62] after rejections (and [4.20] cannot trigger with
-  e_m = 1e-10); [4.26, 4.48] (negligible step) end the search as STALLED when [3.62] fails.
-  The initial-constraint checks [4.10-4.11, 4.22-4.23] have nothing to check (I(a) is
-  empty here), and [4.24-4.25] is exact for G = tf (linear in a).
-* Path constraints C(t, x, u) <= 0 (not in the thesis; our extension, the appendix-C way,
-  as in `KalmanSQP`): after the terminal observations, the grid point the increment would
-  violate most is observed at its boundary, C_a Da = -C, one point per round (skipping points
-  nearly dependent on those observed), until no predicted violation is left. Every check
-  that the thesis makes on E (capture [4.9, 4.39], band [4.14, 4.43], the quadratic models
-  [4.40, 4.44]) runs on the error vector [E; max(C, 0)]; the adaptation tests [B.2, B.5] and
-  the change cap [4.27] stay on E; the projected gradient [3.62] is taken against H and the
-  rows of the points with C >= -e_a.
-* Convergence in the minimum search: the projected gradient |V G_a| [3.62] (in the scaled
-  parameters a_i / max(|a_i|, 1), `jaxtraj._kkt.stationarity`) below `max(gtol, e_a) (1 +
-  |G|)` (a loose stage needs no tighter stationarity than its band).
-  MAXREJ consecutive rejections or a negligible step [4.26, 4.48] without that test
-  passing end the search as STALLED (the thesis checks 3.62 before calling it converged). (With the
-  published e_m the printed test alpha_g e_m (1 + |G|) is far below what any run reaches.)
+Each decision where the OCR of the source is ambiguous or silent is marked "OCR:" below; the
+list of them, our extensions (held knot gaps, path constraints) and the convergence tests:
+docs/solvers/kalman-search.md (the algorithm, its history and measurements).
 """
 
 import equinox as eqx
@@ -139,12 +92,12 @@ class KalmanSearch(AbstractSolver):
     - `max_rejections`: consecutive rejected candidates before STALLED (MAXREJ);
       `max_retunings`: preliminary re-tunings per candidate.
     - `min_shrink`: smallest step-shrink factor.
-    - `gap_keep`: the least fraction of a knot gap one increment keeps (0.5; module docs).
+    - `gap_keep`: the least fraction of a knot gap one increment keeps (0.5; docs/solvers/kalman-search.md).
 
     What SUCCESS guarantees: max |E_i| <= `e_a`, max C <= `e_a` on the grid, and the
-    projected gradient |V G_a| (scaled parameters, module docs) <= max(`gtol`, `e_a`) (1 + |G|) (1e-5 relative by default: a
-    first-order method, it stops at the first point that passes). It bounds the distance to
-    the optimum only through the curvature: |a - a*| <= |V G_a| / lambda_min(reduced
+    projected gradient |V G_a| (scaled parameters, docs/solvers/kalman-search.md) <= max(`gtol`, `e_a`) (1 + |G|)
+    (1e-5 relative by default: a first-order method, it stops at the first point that passes). It bounds the
+    distance to the optimum only through the curvature: |a - a*| <= |V G_a| / lambda_min(reduced
     Hessian) on a convex quadratic problem (3e-4 on the min-energy double integrator with
     `PiecewiseLinear(3)`, tested). A `gtol` far below the default may not be reached: the
     search zigzags inside the constraint band and ends STALLED at a point that depends on

@@ -1,79 +1,23 @@
 """A quasi-Newton Kalman SQP: the thesis's sequential filter update as the step of an SQP
 method (ALGORITHM.md section 7).
 
-The thesis's increment is the solution of an equality-constrained quadratic model whose
-Hessian is the inverse of a fixed diagonal covariance. With the covariance P = B^-1, B an
-approximation of the Hessian of the Lagrangian L = G + lambda^T E, the prior mean -P G_a^T
-and the full correction z = -E observed with (almost) no noise, the same sequential update
-returns the SQP step
+With the covariance P = B^-1 (B an approximation of the Hessian of the Lagrangian
+L = G + lambda^T E), the prior mean -P G_a^T and the full correction z = -E observed with
+(almost) no noise, the thesis's sequential update returns the SQP step
 
     d = argmin G_a d + 1/2 d^T B d   subject to   E + H d = 0,
 
 and the multipliers follow from its stationarity condition H^T lambda_qp = -(G_a + B d).
+Inequality rows (path constraints on the grid, terminal inequalities, control bounds) join
+as observations through Goldfarb & Idnani's dual active set on the same rank-one updates
+(`direction`); free knot times keep their order by the appendix-C observations.
 
-* Defaults: the exact Hessian and the trust region, `KalmanSQP()` = `KalmanSQP(hessian=
-  "exact", globalization="trust-region")`, also `jt.solve`'s default: the configuration with
-  fewer iterations than the thesis on all seven Earth-Mars cases, SUCCESS on every gallery
-  problem from its naive start with fewer iterations than the line search on 11 of 15, and
-  more of Zermelo's random starts at the reference (26 against 22 of 32; singular arc 30
-  against 31) (benchmarks/RESULTS.md, "The trust region as the one default").
-* Hessian. `hessian="exact"` (default): the exact Hessian of the Lagrangian at every
-  accepted point but the last (`_sensitivity.lagrangian_hessian`, one kernel for both
-  globalizations: forward over reverse autodiff of the simulation, or by segments; one more
-  integration). `hessian="bfgs"` (line search only): exact at a0 and at the accepted
-  candidates of the first `exact_iterations` iterations, then Powell-damped BFGS updates on
-  the Lagrangian gradient, which keep it positive definite (the early exact Hessians steer
-  the first steps into the right basin; pure BFGS ends case 3 in a worse local minimum). An
-  accepted candidate of a search that backtracked (its BFGS step was rejected) gets the exact
-  Hessian too (unless `exact_iterations=0`, pure BFGS):
-  BFGS cannot learn a free scale of the parameters (orbit raising's thrust vector, normalized
-  in the dynamics). The line search makes either exact Hessian positive definite by
-  `convexify`, the trust region its own way.
-* Globalization (`globalization`, a module with its own settings and state): the
-  composite-step trust region `jt.TrustRegion` (default; `jaxtraj._trust_region`; exact
-  Hessian; the composite step without inequalities, the QP below in a box with them) or the
-  merit line search `jt.LineSearch` (`jaxtraj._line_search`; either Hessian). This module
-  holds what both share: the QP step by the filter, its multipliers, the second-order
-  correction, the Hessians.
-* Free knot times keep their order by the appendix-C observations (`keep_knots_ordered`);
-  the KKT test takes their gaps t_k - t_{k+1} <= 0 as inequality rows (`_kkt.with_knot_gaps`),
-  so that a collapsed segment gets its multiplier. (The gaps as QP rows too turned the line
-  search's steps: +80 % iterations on Earth-Mars case 2, failures on cases 3 and 7;
-  docs/history.md. The trust region's QP for problems with inequalities takes them as rows,
-  `direction(gap_rows=...)`, before appendix C: measured on the gallery, RESULTS.md.)
-* Inequalities (path constraints C(t, x, u) <= 0 on the integration grid, terminal
-  inequalities, control-bound rows) the appendix-C way: the rows of an active set become
-  observations C_a d = -C after the terminal ones. The active set (`direction`) by
-  Goldfarb & Idnani's dual active-set method on the same rank-one updates
-  (`jaxtraj._kalman.dual_active_set`): from the equality-constrained step, the most
-  violated row joins, or replaces a working row whose multiplier would turn negative; rows
-  nearly dependent on the working ones (adjacent grid points) can only replace one; it
-  starts from the last QP's active rows. With both globalizations the step bound
-  |d_i| <= radius is part of the same QP. Linearized
-  constraints inconsistent with the inequalities (a start at rest whose bounded control the
-  terminal rows alone fix) make an elastic step: the equalities observed with noise
-  (`elastic`), a penalty instead of a hard row. The multipliers lambda = [lambda_E; nu >= 0] of
-  all rows enter the Lagrangian and the merit. A fresh direction first releases the
-  multipliers of points that are strictly inactive (`release_inactive`): a leftover nu there
-  makes the merit's slope positive near the optimum, or its model predict an increase for the
-  step back to the row.
-* One `step` = one candidate integration with first-order sensitivities (and the exact
-  Hessian at an accepted point). Work that only some steps need (the Hessian, the start's
-  least-squares multipliers, the infeasibility test) runs under `_driver.only_where`: a
-  branch in one solve, and under `vmap` only in a step where some lane needs it.
-* Termination. What SUCCESS guarantees: max |E_i| <= `ctol`, max C <= `ctol` on the grid,
-  and the projected gradient |V G_a| (V: projection on the tangent space of E and of the
-  path points with C >= -`path_active`; right-signed multipliers; in the scaled parameters
-  a_i / max(|a_i|, 1): `jaxtraj._kkt.stationarity`) <= `acceptable_gtol` (1 + |G|). The search runs
-  until |V G_a| <= `gtol` (1 + |G|) (the usual outcome) or until no measurable progress is
-  left (each globalization says when); that point is SUCCESS if it meets the guarantee,
-  otherwise STALLED (CONSTRAINT_STATIONARY where it is infeasible at a stationary point of
-  the violation: locally infeasible). Two levels, because the projected
-  gradient's floor is set by the round-off of the sensitivities, not by the method: a single
-  test at `gtol` would flip between SUCCESS and STALLED with the last bits of the start,
-  i.e. with the CPU.
+The globalization is a module of its own: `jt.TrustRegion` (`jaxtraj._trust_region`, the
+default, exact Hessian) or `jt.LineSearch` (`jaxtraj._line_search`, exact Hessian or BFGS).
+This module holds what both share: the QP step by the filter, its multipliers, the
+second-order correction, the Hessians.
 
-Measurements behind these choices: `benchmarks/RESULTS.md`; their history: `docs/history.md`.
+(The algorithm, its history and measurements: docs/solvers/kalman-sqp.md.)
 """
 
 import equinox as eqx
@@ -163,7 +107,7 @@ def _globalization(value):
 
 
 class KalmanSQP(AbstractSolver):
-    """Quasi-Newton SQP whose step is the sequential Kalman update (see the module docs).
+    """Quasi-Newton SQP whose step is the sequential Kalman update (see docs/solvers/kalman-sqp.md).
 
     Fields:
 
@@ -175,7 +119,7 @@ class KalmanSQP(AbstractSolver):
     - `gtol`: projected-gradient target, relative to 1 + |G| (1e-9): the search stops when
       it is met.
     - `acceptable_gtol`: what SUCCESS guarantees of the projected gradient (relative to
-      1 + |G|, 1e-6) when round-off ends the progress before `gtol` is met (module docs).
+      1 + |G|, 1e-6) when round-off ends the progress before `gtol` is met (docs/solvers/kalman-sqp.md).
     - `acceptable_steps`: a point that stays acceptable (feasible, projected gradient <=
       `acceptable_gtol`) for this many steps in a row ends the search with SUCCESS (15, as
       IPOPT's `acceptable_iter`): along a degenerate valley whose steps move only the

@@ -4,35 +4,11 @@
 Backtracking on the augmented-Lagrangian merit function phi(a, lambda) = G + lambda^T E +
 mu/2 |E|^2 (+ the PHR terms of the path constraints) over (a + alpha d, lambda + alpha
 (lambda_qp - lambda)) (Schittkowski's merit function; unlike the l1 merit it accepts unit steps
-near the solution, so the superlinear rate is not lost to the Maratos effect).
+near the solution, so the superlinear rate is not lost to the Maratos effect). The penalty mu
+rises until d is a descent direction for the merit; a rejected full step is retried once with
+a second-order correction.
 
-* Penalty. mu rises (Newton steps on the slope, doubled for a margin) until the directional
-  derivative is at most -1/2 d^T B d, but only while E or C violate `ctol`: once they are met
-  (at round-off) the slope hardly depends on mu, and the Newton step would ask for an enormous
-  penalty whose term mu/2 |E|^2 turns E's round-off into merit noise above any decrease. The
-  penalty is kept for the next direction unless it exceeds `mu_max`; then the next one starts
-  from 0.
-* Steps. The step is capped at `radius` in its largest component (doubled after every full
-  step it limited, reset to the accepted length after a shortened one). Armijo factor
-  `armijo`, relaxed by the merit's round-off (10 eps (1 + |phi|)); a rejected alpha is replaced
-  by the minimizer of the quadratic through phi(0), phi'(0), phi(alpha), kept in [0.1, 0.5]
-  alpha. Before that, a rejected *full* step is retried once with a second-order correction
-  d + d_soc, H d_soc = -E(a + d) (the constraints' curvature along d; Nocedal & Wright
-  sec. 15.4). If B's step is no descent direction for the merit, the direction is recomputed
-  from a scaled identity.
-* Hessian. With `hessian="bfgs"`, Powell-damped BFGS updates of the Lagrangian's gradient
-  change after the first `exact_iterations` iterations (exact Hessians before).
-* No measurable progress: a step below `min_step`, no descent direction, a negligible step, or
-  `flat_steps` accepted steps in a row within the merit's round-off without halving the
-  projected gradient. The solver's termination rule (`jaxtraj._kkt.kkt_outcome`) then decides
-  between SUCCESS and STALLED.
-
-One `step` = one candidate integration (and the exact Hessian where an accepted point needs
-it); the first step's candidate is the start itself (weighed with its least-squares
-multipliers; `init` integrates nothing, so the evaluation kernels are compiled once, in the
-step). The direction is a loop of at most two rounds (B, then the scaled identity), so that
-its QP is compiled once; the Hessian, the start's multipliers and the infeasibility test run
-under `_driver.only_where` (under `vmap`, only in a step where some lane needs them).
+(The algorithm, its history and measurements: docs/solvers/kalman-sqp.md, "Line search".)
 """
 
 import equinox as eqx
@@ -117,7 +93,7 @@ class LineSearchState(eqx.Module):
 
 
 class LineSearch(eqx.Module):
-    """KalmanSQP's merit line search (module docs). Fields:
+    """KalmanSQP's merit line search (docs/solvers/kalman-sqp.md). Fields:
 
     - `radius`: initial cap on a step's largest component |d_i| (parameter units, 0.5).
     - `armijo`: sufficient-decrease factor (1e-4).
@@ -238,7 +214,7 @@ class LineSearch(eqx.Module):
             capped = d_max > state.radius
             cut = jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
             d = d * cut
-            # the penalty carries over unless it ran past `mu_max` (see the module docs)
+            # the penalty carries over unless it ran past `mu_max` (see docs/solvers/kalman-sqp.md)
             mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
             base = sqp.release_inactive(ev, lam)
             # Without inequality rows the QP has no box (`KalmanSQP.direction`): its step and

@@ -20,15 +20,9 @@ keep their signatures (they see the user's state, without the cost). State bound
 (`state_lower`, `state_upper`) are path constraints on the user's states, named
 `"<state> upper bound"` / `"<state> lower bound"`, after the user's `path` rows.
 
-Path constraints are imposed on the points of the simulator's integration grid (a finer
-check is up to the problem: e.g. `problems.attitude.cone_margin`), by every solver:
-`KalmanSQP` and `KalmanSearch` observe the grid points of an active set (appendix-C style),
-`AugmentedLagrangian` carries a multiplier per grid point, and the SciPy SLSQP / IPOPT
-baselines impose them as inequalities. Solutions report the worst value and its time
-(`max_path_constraint`, `max_path_time`).
-
 Physical constants go in `args` (a pytree of arrays), not in closures, so that changing them
-does not recompile anything and they can be traced or vmapped over.
+does not recompile anything and they can be traced or vmapped over. Path constraints hold on
+the integration grid (how each solver imposes them: docs/own-problem.md, "Things to know").
 """
 
 from collections.abc import Callable

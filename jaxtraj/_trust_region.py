@@ -3,86 +3,16 @@
 the exact Hessian of the Lagrangian (Nocedal & Wright sec. 18.5), its constraint parts
 computed by the sequential Kalman update.
 
-Without inequality constraints each step is d = v + u, within |d|_2 <= radius:
+Without inequality constraints each step is d = v + u within |d|_2 <= radius: the normal step
+v is the filter's minimum-norm step towards the linearized constraints H v = -E (or Powell's
+dogleg), the tangential step u = V w solves the trust-region subproblem on the null space of H
+exactly (More and Sorensen), so it follows negative curvature; far from feasible the step is
+v alone. With inequalities the step is the line search's QP (`KalmanSQP.direction`) in the box
+|d_i| <= radius. A candidate is accepted on the ratio of the actual to the predicted decrease
+of an augmented-Lagrangian merit (a rejected one is retried with a second-order correction),
+and the radius follows that ratio.
 
-* normal step v: the minimum-norm solution of the linearized constraints H v = -E, i.e. the
-  sequential filter update from the prior 0 with covariance I (the thesis's update with unit
-  weights), cut to `zeta` x radius, or Powell's dogleg step where the cut step lowers the
-  linearized violation by less than a tenth of the dogleg's (`normal_step`: nearly rank
-  deficient rows). The same filter's posterior covariance is the projector V onto the null
-  space of H, where the tangential step lives.
-* tangential step u = V w: the trust-region subproblem of the reduced model
-  min (g + W v)^T u + 1/2 u^T W u over |u| <= sqrt(radius^2 - |v|^2), solved exactly (More and
-  Sorensen): the eigenvalues of the reduced Hessian V W V give the shift sigma >= 0 with
-  (V W V + sigma I) u = -V (g + W v) and |u| on the boundary (or sigma = 0 inside); with
-  negative curvature the step runs to the boundary along it instead of being convexified away.
-  This is what the line search cannot do: near a saddle of the reduced problem (Earth-Mars
-  case 2) the line-search SQP, with its eigenvalues made positive, crawls.
-* feasibility first: far from feasible, while v is cut (the linearized constraints lie beyond
-  zeta x radius), d = v alone: the filter's step towards the linearized constraints, before
-  the objective has a say (the step of a feasibility restoration, on the same merit and ratio
-  test). "Far" is |E| > `feasibility_first` x |H|_F |a| (0.1): the linearized constraints ask
-  for a change of the parameters of at least that fraction of their size, a measure that is
-  invariant to the scale of E and of a, and that rank-deficient rows at a small violation do
-  not inflate (the length of v itself would: Earth-Mars case 2 near its saddle).
-* free knot times: a gap t_{i+1} - t_i may shrink to no less than `gap_floor` of its length in
-  one step; a step that would shrink it further observes the gap's change at that bound, as one
-  more row of the filter, one row per round, rows added until none is violated. This is appendix
-  C's observation of the approach of two knots with a_t = 1 / (1 - gap_floor), noise-free (so
-  the trust region's step meets it), and entered as soon as the step would take more than that
-  share of the gap, not only when the knots would cross.
-
-Inequalities (path constraints on the grid, terminal inequalities, control- and state-bound
-rows; `_kkt.inequality_rows`). A problem with any takes its step from the QP the line search uses
-instead (`KalmanSQP.direction`: the filter's equality step and the dual active set, knot order
-by appendix C; here the knot gaps of the KKT test, `_bounds.knot_gap_rows`, are also rows of
-that QP, so that its step respects every gap at once and appendix C only keeps a share of the
-gaps it closes: observed one gap at a time, a gap's observation could push the next knot past
-its neighbour, whose scaling then cut every step, RESULTS.md) with the trust region as the box
-|d_i| <= radius in that QP, on the exact
-Hessian of the Lagrangian (with the inequality multipliers) made positive definite relative
-to the rows that are active now (H and the inequality rows with C >= -`path_active`): W + c
-A^T A where that is positive definite (on the QP's feasible set the added term is constant, so
-where the active set holds the Newton step is kept), otherwise block by block along the null
-space of those rows and its range (`convexify_blockwise`: the reduced Hessian stays W's where
-W's is positive definite; Goddard's rocket from the naive start: 105 iterations with
-`convexify` on H alone, 69 on the active rows, 7 block by block; a W at the round-off of the
-Lagrangian's gradient counts as no curvature, `_curvature_floor`). The radius is then the box's
-half-width (the composite step's is Euclidean), and the multipliers after an accepted step are
-the QP's (nu >= 0, zero off its active set). Entries that the QP's step leaves past their
-bound rows by its round-off are put back on them before the candidate is integrated
-(`_bounds.bound_excess`, exactly 0 inside): a point on its bounds then counts as feasible (a
-unicycle's minimum time: 12 -> 7 iterations, four steps had gone to a 1e-9 bound violation). Without inequalities the composite step above.
-
-Step rule: the ratio of the actual to the predicted decrease of the augmented-Lagrangian merit
-G + lambda^T E + mu/2 |E|^2 (+ the PHR terms of the inequality rows, as the line search's
-merit; the multipliers of the current point); the predicted decrease is that of the merit's
-model (the Lagrangian's quadratic model with curvature W, or the QP's B, and the linearized
-constraints); mu raised so that the predicted decrease is at least 0.3 mu x the linearized
-decrease of |E|^2/2 + |max(C, 0)|^2/2, never lowered within a step (near feasibility, once
-the violation has halved since the last time, the penalty carried to the next one is capped
-at `mu_max` x its natural scale |W| / |A|^2, `TrustRegion`). A candidate
-with ratio >= `eta` is accepted; a rejected one is first retried with a second-order
-correction (the minimum-norm step onto H d_c = -E(a + d), by the same filter; with
-inequalities the line search's `KalmanSQP.correction`); the radius
-doubles after a good step on the boundary (ratio > 0.75; not after a step accepted only with
-its correction: the model without it failed at that length), halves to |d| / 2 after a poor
-one (ratio < 0.25) and falls to |d| / 4 after a rejection. Where the model was exact along
-the step (ratio 1 to 1e-9: linear constraints and a quadratic objective, whose ratios sit at
-1e-13 from 1; the other gallery problems' boundary steps at 1e-4 or more but for 7 of 1458
-random-start steps and one of max range's, whose QP step the rule leaves alone) the radius
-opens to the model's own minimizer (its length / zeta, where the reduced Hessian is positive
-definite): the two-channel transfer in 2 iterations instead of 7 (RESULTS.md). Every step
-integrates one candidate with first-order sensitivities; an accepted one that does not end the solve is integrated once more
-for the Hessian of the Lagrangian with its multipliers (`lagrangian_hessian`; both count in
-`integrations`). The first step's candidate is the start (`init` integrates nothing, so each
-evaluation kernel is compiled once). No measurable progress (the solver's termination rule then decides between
-SUCCESS and STALLED, or CONSTRAINT_STATIONARY at a stationary point of the violation): a
-negligible radius or step, or, at a feasible point, a step inside the radius (the model's own
-minimizer) whose predicted decrease is below the merit's round-off.
-
-Only exact Hessians: with damped BFGS or SR1 the same trust region needed far more iterations
-(benchmarks/RESULTS.md). Gallery of classic problems with either globalization: RESULTS.md.
+(The algorithm, its history and measurements: docs/solvers/kalman-sqp.md, "Trust region".)
 """
 
 import equinox as eqx
@@ -260,7 +190,7 @@ def subproblem(grad, W, V, radius, newton_grad=None):
 
 
 def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor, normal_only=False):
-    """The composite step d = v + u (module docs), with the knot gaps kept above `gap_floor`
+    """The composite step d = v + u (docs/solvers/kalman-sqp.md), with the knot gaps kept above `gap_floor`
     of their length by observations added one per round; where `normal_only` (a boolean,
     traced or not), the normal step alone while it is cut to `zeta` x radius. Returns d and
     the length of the model's own minimizer, the composite step without the radius (inf where
@@ -409,16 +339,16 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     live = ~state.done
     with_rows = inequality_rows(ev) is not None
     # far from feasible: the linearized constraints ask for a relative change of the
-    # parameters of at least `feasibility_first` (module docs)
+    # parameters of at least `feasibility_first` (docs/solvers/kalman-sqp.md)
     far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
 
     # a new step (no integration); only where no correction is pending
     if with_rows:
         # the QP of the line search with the convexified Hessian, the radius as the box
-        # |d_i| <= radius (module docs)
+        # |d_i| <= radius (docs/solvers/kalman-sqp.md)
         A = active_rows(ev, sqp.path_active)
         B = convexify_blockwise(W, A, sqp.min_curvature, _curvature_floor(ev, state.lam, a))
-        gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (module docs)
+        gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (docs/solvers/kalman-sqp.md)
 
         def new_step(ev, B, lam, radius, gaps):
             d, lam_qp = sqp.direction(ev, B, lam, knots, dknots, radius, gaps)
@@ -589,7 +519,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
 
 
 class TrustRegion(eqx.Module):
-    """KalmanSQP's composite-step trust region (module docs). Fields:
+    """KalmanSQP's composite-step trust region (docs/solvers/kalman-sqp.md). Fields:
 
     - `radius`: initial radius of |d|_2 (parameter units, 1.0; with inequalities the half-width
       of the box |d_i| <= radius).

@@ -8,47 +8,12 @@ Each optimizer is an `init` / `step` / `terminate` state machine over an array-o
 
     res = jt.metaheuristics.minimize(jt.metaheuristics.GreyWolf(), fn, lower, upper, key)
 
-Common rules (all three optimizers):
+New positions are clipped to the box [lower, upper], a non-finite fn value counts as +inf,
+and the best point is the best ever evaluated. The same key gives a bit-identical result,
+also inside `jax.vmap` over keys (hence the integer-ratio schedules of `_schedule`).
 
-* Generation k = 0, 1, ..., K - 1 (K = `max_iterations`) moves the population with the
-  parameters of the algorithm at t = k / K; the new positions are clipped to the box
-  [lower, upper], then evaluated. The initial population is uniform in the box.
-* A non-finite fn value counts as +inf: it is never selected as best (or as a leader).
-* The best point is the best ever evaluated (elitist), so `history_best` (the best value
-  after each generation) is non-increasing.
-* Evaluations: `population` for the initial population plus `population` per generation,
-  i.e. `evaluations == population * (iterations + 1)`.
-* Reproducibility: the same key gives a bit-identical result, and so does the same key
-  inside `jax.vmap` over keys (checked on XLA:CPU). Population dynamics amplify a one-ulp
-  difference into a different run, and XLA:CPU may fuse a multiply-add into one rounding
-  in the single program but not in the batched one; so the parameter schedules are
-  integer ratios (`_schedule`) and the DA velocity sum is a dot product.
-
-Decisions where seed 003 (an OCR of the paper) is unclear or silent:
-
-* GWO: the seed's leaders (alpha, beta, gamma) are "the three best wolves"; as in the
-  published reference code they are the three best points found so far (the previous
-  leaders compete with the new population). The seed mentions the quadratic decay
-  a = 2 (1 - k^2 / K^2) also for GWO, so `GreyWolf` takes `decay` as well.
-* WOA: the seed makes A a vector (A = 2 a r1 - a, r1 uniform per component) and compares
-  its *Euclidean norm* |A| with 1; we follow the seed (Mirjalili & Lewis 2016 draw one
-  scalar r1 per whale). The spiral variable l is uniform on [-1, 1] (seed and paper; the
-  reference code narrows it to [a2, 1]); the spiral constant ("beta" in the seed, b in
-  the paper) is `spiral=1.0` as in the paper. x_rand is a uniformly drawn member of the
-  current population (possibly the whale itself).
-* GWO and WOA: a takes the values 2 (1 - k/K), k = 0..K-1 (the seed's a_i with k the
-  iteration number, as in the reference code: a never reaches 0).
-* DA: the seed describes the algorithm in words only (its text ends before the
-  equations), so the equations are Mirjalili 2016 (eqs. 3.1-3.10) with the schedules of
-  the author's reference code; the seed fixes one detail, the swarm moves need *more than
-  one* neighbour (the paper's pseudo-code says "at least one"). Further choices: the
-  enemy term E = x- + x_i exactly as printed in eq. 3.5; Mantegna's Levy steps with
-  normal draws (the reference code uses uniform ones); step vectors start at zero (the
-  reference code draws them in the box); the reference code's velocity limit
-  (upper - lower)/10 is kept, its "food outside the radius" branch is not. See `Dragonfly`.
-* Box: the seed does not say how positions are kept feasible; they are clipped to
-  [lower, upper] after every move (as in the reference codes), and a NaN coordinate from
-  an overflowing move keeps its previous value.
+(The rules common to all three and every decision where seed 003 is unclear or silent:
+docs/solvers/metaheuristics.md.)
 """
 
 import abc

@@ -4,57 +4,17 @@ Pure-JAX functions on single samples (`(4,)` quaternions, `(3,)` angle or rate v
 `(3, 3)` matrices); all of them can be used under `jax.jit`, `jax.vmap` and `jax.jacfwd`, and
 return float64 (inputs are cast up). Each array function is itself wrapped in `jax.jit`, so
 eager calls compile once per input shape and dtype instead of dispatching op by op. Written
-for the satellite-reorientation problem of seed 002 (sun keep-out cone, quaternion and ZYX
-Euler-angle forms of the kinematics).
+for the satellite-reorientation problem of seed 002.
 
-**Frames.** The attitude maps *body* coordinates to *inertial* coordinates:
-`x_I = R @ x_B`, with `R = quaternion_to_matrix(q) = euler_zyx_to_matrix(e)`. The angular
-velocity `w = (w1, w2, w3)` is that of the body relative to the inertial frame, *expressed in
-body axes* (the `omega` of Euler's equations, seed eqs. 1-3). Then `R' = R @ skew(w)`. The
-inertial->body matrix (the "attitude matrix" A of the Shuster/JPL literature, used for the
-keep-out cone `x^T y_I`, `y_I = R y`) is the transpose `R.T`.
+Conventions: `R` maps *body* to *inertial* coordinates, `x_I = R @ x_B`, and `w` is the
+body's angular velocity in body axes, `R' = R @ skew(w)`. Quaternions are scalar-LAST with
+the Hamilton product (scipy's convention), `q' = 1/2 Omega(w) q`, returned with `q4 >= 0`.
+ZYX angles are `e = (psi, theta, phi)` with `R = Rz(psi) @ Ry(theta) @ Rx(phi)` (scipy's
+`from_euler("ZYX", ...)`); their kinematics divide by `cos(theta)` (gimbal lock at
+`theta = +-90 deg`, `euler_singularity_margin`).
 
-**Quaternions** are scalar-LAST, `q = (q1, q2, q3, q4) = (e sin(phi/2), cos(phi/2))`, for a
-rotation by `phi` about the unit axis `e`, with the Hamilton product (`quaternion_multiply`),
-so `R(p * q) = R(p) @ R(q)` and `R(q) v = vec(q * (v, 0) * conj(q))`. This is the convention of
-`scipy.spatial.transform.Rotation` (`from_quat(q).as_matrix() == quaternion_to_matrix(q)`,
-`(P * Q).as_quat() == quaternion_multiply(p, q)` up to sign). `q` and `-q` are the same
-attitude; functions that produce a quaternion return the representative with `q4 >= 0`
-(at `q4 == 0`, a half-turn, both signs are valid and either may come back).
-
-**Quaternion kinematics, derived.** From `R' = R skew(w)` and `R(q) v = q * v * conj(q)`,
-`q' = 1/2 q * (w, 0)` (body-frame `w` multiplies on the right). Writing out the Hamilton
-product with `q = (v, s)`: `q * (w, 0) = (s w + v x w, -v . w) = (-skew(w) v + s w, -w . v)`,
-so `q' = 1/2 Omega(w) q` with
-
-    Omega(w) = [[ -skew(w), w ],      [[  0,   w3, -w2,  w1],
-                [ -w^T,     0 ]]  =    [-w3,   0,   w1,  w2],
-                                       [ w2,  -w1,  0,   w3],
-                                       [-w1,  -w2, -w3,  0 ]]
-
-Omega is antisymmetric (so `|q|` is conserved exactly by the ODE) and `Omega^2 = -|w|^2 I`.
-The OCR of seed eq. 4 agrees except in entry (1, 3), printed `+w2`: the derivation and the
-antisymmetry give `-w2`, so that sign was lost. The same numbers `q`, and the same Omega, serve
-the Shuster/JPL convention, whose attitude matrix `A(q) = R(q)^T` maps inertial->body.
-
-**ZYX Euler angles** are ordered `e = (psi, theta, phi)`: yaw about z, pitch about y, roll
-about x, applied intrinsically z, then the new y, then the newest x:
-`R = Rz(psi) @ Ry(theta) @ Rx(phi)`. This is scipy's `Rotation.from_euler("ZYX", [psi, theta,
-phi])` (capital letters: intrinsic). Ranges returned: `psi, phi` in `[-pi, pi]`, `theta` in
-`[-pi/2, pi/2]`. Their kinematics (seed eq. 5, which orders the vector `(phi, theta, psi)`;
-derived from `skew(w) = R^T R'`) are
-
-    psi'   = (sin(phi) w2 + cos(phi) w3) / cos(theta)
-    theta' =  cos(phi) w2 - sin(phi) w3
-    phi'   =  w1 + tan(theta) (sin(phi) w2 + cos(phi) w3)
-
-**Gimbal lock.** At `theta = +-90 deg` (`cos(theta) = 0`) only `psi - phi` (theta = +90) or
-`psi + phi` (theta = -90) is defined: `euler_zyx_rate` divides by `cos(theta)` (rates blow up
-like `1 / cos(theta)` next to it, inf/nan at an exact zero), and `matrix_to_euler_zyx` returns
-*a* valid triple (its `psi` is arbitrary, `phi` absorbs the rest) with huge or nan derivatives.
-`euler_singularity_margin(e) = cos(theta)` is the distance to the singularity for use as a
-status/constraint inside jit; `check_euler_away_from_singularity` raises `ValueError` for a
-concrete input that is too close. Quaternions have no such singularity.
+(The conventions in full, the kinematics derived and the sign of seed eq. 4: docs/library.md,
+"Attitude conventions".)
 """
 
 import jax
@@ -82,7 +42,7 @@ def skew(w) -> jax.Array:
 @jax.jit
 def omega_matrix(w) -> jax.Array:
     """The `(4, 4)` antisymmetric `Omega(w)` of `q' = 1/2 Omega(w) q` (scalar-last `q`,
-    body-frame `w`; see the module docstring for the derivation)."""
+    body-frame `w`; see docs/library.md, "Attitude conventions", for the derivation)."""
     w1, w2, w3 = _f64(w)
     z = jnp.zeros_like(w1)
     return jnp.stack(

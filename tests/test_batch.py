@@ -472,7 +472,7 @@ np.savez(sys.argv[5], *[np.asarray(x) for x in jax.tree.leaves(sols)])
 
 @pytest.mark.slow
 def test_two_hosts_with_jax_distributed(batch, tmp_path):
-    """The module docstring's multi-host recipe, with two processes on this machine: each
+    """The multi-host recipe of docs/api/batch.md, with two processes on this machine: each
     returns the whole batch; only process 0 prints and writes the folder."""
     import socket
 

@@ -10,13 +10,8 @@ Two layers:
   in one vmapped call: terminal-error statistics and dispersion bands), with execution-error
   models `ThrustErrors`, `ControlErrors`, `ExecutionErrors`.
 
-Equation numbers refer to seed 001 (lecture notes on synthesis of optimal control):
-
-* discrete LQR, x_{i+1} = A_i x_i + B_i u_i (1.13), cost sum u^T W u + x_N^T Lambda x_N (1.14)
-  solved by Bellman's recursion (1.5): u_i = -L_i x_i (1.22), gain (1.23), Riccati (1.24);
-* continuous LQR, x' = A x + B u (1.37), cost (1.38): Riccati ODE (1.44) with S(T) = Lambda
-  (1.45), u = -W^-1 B^T S x (1.46)-(1.47), stationary limit (1.48);
-* stochastic LQR with multiplicative and additive control-realization errors (2.10)-(2.20).
+Equation numbers refer to seed 001 (lecture notes on synthesis of optimal control; which
+equations each function solves: docs/api/feedback.md).
 
 Conventions (all functions): cost-to-go V_k(x) = x^T S_k x + c_k for the cost
 sum_k (x_k^T Q x_k + u_k^T R u_k) + x_N^T Qf x_N (continuous: the integral of the same

@@ -1,63 +1,17 @@
 """Minimum-energy satellite reorientation with a sun keep-out cone (seed 002; Kim & Mesbahi
 2004), in quaternion or ZYX Euler-angle form.
 
-A rigid satellite, J = diag(100, 200, 300) kg m^2, turns in tf = 500 s from rest at attitude
-q0 ~ (0, 0.258, 0.993, 0.025) to rest at qf ~ (0.025, 0.025, 0.999, 0.025) (normalized,
-scalar-last, body->inertial; see `jaxtraj.rotations`), a 26.4 deg rotation, under Euler's
-equations (seed eqs. 1-3)
+A rigid satellite, J = diag(100, 200, 300) kg m^2, turns in tf = 500 s from rest to rest
+through 26.4 deg under Euler's equations J w' = u - w x (J w), while its instrument boresight
+y stays out of the cone of half-angle 50 deg around the sun direction s:
+C = s . (R(q) y) - cos(50 deg) <= 0. The objective is the control energy, carried as an extra
+state (Mayer form). The grid constraint uses a cone widened by `cone_backoff_deg`, so that the
+cone itself holds between grid points (`cone_margin` checks it on a finer grid). The Euler
+form keeps |theta| <= `pitch_limit_deg` (gimbal lock) by a "gimbal" path constraint. Units
+are chosen so that the parameters are O(1) (`time_unit`, `torque_unit`).
 
-    J w' = u - w x (J w),
-
-while its instrument boresight y = (0.750, 0.433, 0.500) (body axes, normalized) stays out of
-the cone of half-angle 50 deg around the sun direction s (inertial):
-
-    C = s . (R(q) y) - cos(50 deg) <= 0      (seed eq. 6).
-
-**Between grid points.** The solvers enforce C on their integration grid; the boresight path
-bends between grid points and can dip into the cone there (3.3e-5 deg with RK4(20) on 8
-segments, measured on a 10x finer grid). So the grid constraint uses a cone widened by
-`cone_backoff_deg` (default 1e-3 deg, 30x that dip): C = s . (R(q) y) - cos(50 deg + backoff),
-and the cone itself then holds along the whole path (`cone_margin` checks it on a finer grid;
-the energy rises by ~1e-5 relative). Our decision; the seed does not discuss it.
-
-The seed does not give s; the default s = (0.005034358, -0.286391342, 0.958099501) puts both end
-attitudes 0.5 deg outside the cone while the unconstrained minimum-energy slew cuts into it,
-so the constraint is active. The objective is the control energy, the integral of |u|^2 carried
-as an extra state (Mayer form: the objective is that state at tf).
-
-**Representations.** `"quaternion"`: state (q1, q2, q3, q4, w1, w2, w3, energy) with
-q' = 1/2 Omega(w) q (`rotations.quaternion_rate`). Terminal attitude: the vector part of the
-error quaternion qf^-1 * q(tf) vanishes (three conditions; q and -q, the same attitude, both
-satisfy them, so the sign ambiguity and the norm redundancy of the four components are not
-over-constrained). `"euler"`: state (psi, theta, phi, w1, w2, w3, energy), ZYX angles with the
-kinematics of seed eq. 5 (`rotations.euler_zyx_rate`); terminal attitude: the three angle
-errors, wrapped to (-pi, pi]. Both: terminal rates w(tf) = 0 and tf - T = 0 (the control
-families carry tf as a parameter; as in `analytic.min_energy_double_integrator`), so seven
-terminal constraints.
-
-**Gimbal lock (Euler form).** The ZYX kinematics divide by cos(theta). `problem` raises
-ValueError if an end attitude has |theta| >= `pitch_limit_deg`; along the path an extra path
-constraint "gimbal" cos(pitch_limit) - cos(theta) <= 0 keeps |theta| <= `pitch_limit_deg`
-(default 80 deg; the optimal slews here stay within 3 deg of level), reported like the cone
-in `Solution.max_path_constraint`; and the kinematics return NaN when |cos(theta)| < 1e-6, so a
-trajectory that reaches the singularity ends with `Status.NONFINITE` instead of a silently
-wrong result.
-
-**Units** (solver units, chosen so that the parameters are O(1)):
-
-- time in `time_unit` (default 100 s): tf = 500 s is 5.0;
-- torque in `torque_unit` (default 1e-3 N m = 1 mN m); rates in rad per time unit;
-- energy state = integral of |u|^2 dt in torque_unit^2 time_unit (x 1e-4 for N^2 m^2 s at the
-  defaults; `energy_si` converts).
-
-The scaled Euler equations are J w' = (time_unit^2 torque_unit) u - w x (J w), with J in
-kg m^2. Torque bound: the seed gives none; `torque_max` = 0.01 N m per axis (a small
-reaction-wheel class), not active at the optima here (measured peak 1.16 mN m).
-
-**Controls.** `case` uses `jt.controls.SaturatedSpline(segments, 1, -umax, umax,
-free_durations=False)`: for degree 1 it is a continuous piecewise-linear control per torque
-channel with equally spaced nodes (the only multi-channel family of `jaxtraj.controls`),
-layout [tf, c_0^1..c_K^1, c_0^2..c_K^2, c_0^3..c_K^3], clipped at the torque bound.
+(The model, its representations, units and controls: docs/examples.md, "Attitude slew with a
+sun keep-out cone".)
 """
 
 import math
@@ -191,7 +145,7 @@ def problem(
     pitch_limit_deg: float | None = 80.0,
     cone_backoff_deg: float = 1e-3,
 ) -> Problem:
-    """The reorientation problem (module docs) as a `jt.Problem` in solver units.
+    """The reorientation problem (docs/examples.md) as a `jt.Problem` in solver units.
 
     **Arguments:**
 
@@ -204,7 +158,7 @@ def problem(
     - `torque_max`: bound per axis [N m] (None: unbounded).
     - `time_unit` [s], `torque_unit` [N m]: the solver units.
     - `cone_backoff_deg`: the grid constraint's cone is wider by this angle, so that the
-      cone holds between grid points too (module docs; 0: the cone itself at the grid).
+      cone holds between grid points too (docs/examples.md; 0: the cone itself at the grid).
     - `pitch_limit_deg`: Euler form only: |theta| bound kept as the "gimbal" path constraint
       (None: no such constraint).
 

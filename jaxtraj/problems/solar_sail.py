@@ -1,43 +1,26 @@
 """Minimum-time planar solar-sail transfers from Earth's orbit to Mercury's, Venus's or Mars's
 (seed 003; Kelley's Earth-to-Mars-orbit sail problem as the anchor).
 
-States (normalized units: 1 AU, mu = 1, 1 time unit = 1 / (2 pi) year): r radius, theta
-polar angle, u radial velocity, v tangential velocity. Control alpha: the sail's pitch angle
-in [-pi/2, pi/2]. Ideal flat sail with characteristic acceleration a0 (at 1 AU, sail facing
-the Sun):
+States (normalized units: 1 AU, mu = 1, 1 time unit = 1 / (2 pi) year): r, theta, u, v.
+Control alpha: the sail's pitch angle in [-pi/2, pi/2] (from the Sun-line to the normal of the
+sail's back side, positive towards the motion). Ideal flat sail with characteristic
+acceleration a0:
 
     r'     = u
     theta' = v / r
     u'     = v^2 / r - mu / r^2 + a0 cos^3(alpha) / r^2
     v'     = -u v / r + a0 cos^2(alpha) sin(alpha) / r^2
 
-x(0) = (1, 0, 0, sqrt(mu)) (Earth's circular orbit); at the free final time tf: r = r_f, u = 0,
-v = sqrt(mu / r_f) (the target's circular orbit), theta free; minimize tf.
-
-!!! note "Pitch-angle convention (seed 003, eq. of plane motion)"
-    alpha is the angle from the Sun-line (the outward radius vector, along the sunlight) to
-    the normal of the sail's back (shadow) side, positive towards the direction of motion.
-    The seed writes exactly these right-hand sides (with r_0 = g_0 = 1): alpha > 0 gives a
-    prograde tangential push (spiral outwards, Mars), alpha < 0 a retrograde one (spiral
-    inwards, Venus, Mercury), alpha = +-pi/2 turns the sail edge-on (no thrust, "feathered").
-    The radial push a0 cos^3(alpha) / r^2 is never negative: a sail cannot pull towards the Sun.
-
-!!! note "Pitch angles outside [-pi/2, pi/2]"
-    The problem's control bounds are [-pi/2, pi/2] and the seed's `SaturatedSpline` stays in
-    them. Control families without bounds (`PiecewiseLinear`, ...) can leave them, and the
-    seed's formulas read literally would then give an *attracting* sail (cos^3 < 0) that
-    SLSQP gladly exploits (measured: "tf" = 5.53 < the true optimum 6.99 with
-    PiecewiseLinear(8)). `dynamics` therefore uses cos -> |cos|:
-    radial a0 |cos|^3 / r^2, tangential a0 cos |cos| sin / r^2, which equals the seed's
-    formulas on [-pi/2, pi/2] and extends them pi-periodically: alpha and alpha +- pi are
-    the same flat (two-sided ideal) sail, the normal taken on the side away from the Sun.
+(`dynamics` writes cos -> |cos|: the same on [-pi/2, pi/2], pi-periodic outside.) From Earth's
+circular orbit to the target's at the free final time tf, theta free; minimize tf.
 
 Besides the constrained problem (`problem`) the module has the seed's penalty functional
 (eq. 5, `penalty_objective`) and the parameter box (`box`) for the metaheuristics, the
 diagnostics that flag spurious outcomes (`terminal_miss`, `feathered_fraction`,
 `diagnose`), Kelley's anchor (`kelley_case`) and an independent indirect (Pontryagin)
-solution of the unrestricted problem (`solve_indirect`), written in NumPy/SciPy without
-any of jaxtraj's integration or differentiation code.
+solution of the unrestricted problem (`solve_indirect`).
+
+(The model, its conventions and why: docs/examples.md, "Solar-sail transfers".)
 """
 
 import math
