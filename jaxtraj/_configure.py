@@ -13,8 +13,8 @@ def configure_cpu(devices: int | None = None, *, xla_options: bool = True) -> in
     and two XLA:CPU options. Call it once, right after the imports and before the first
     JAX computation of the process (XLA reads both when its backends start); later it
     raises `RuntimeError`, unless an earlier call already set things up so (then it does
-    nothing, so that a script that calls it can run inside a program that did). The `jaxtraj` command line calls it; `make test` and the
-    benchmark scripts too.
+    nothing, so that a script that calls it can run inside a program that did). The
+    `jaxtraj` command line, the tests, the examples and the benchmark scripts call it.
 
     **Arguments:**
 
