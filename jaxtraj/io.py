@@ -341,7 +341,8 @@ def load(folder):
             f"{arrays_path}: does not belong to {summary_path} (checksum differs: another or an interrupted save)."
         )
     try:
-        with np.load(arrays_path) as data:
+        # (opened here: `np.load` of a cut zip raises with its own file left open)
+        with open(arrays_path, "rb") as handle, np.load(handle) as data:
             arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise ValueError(f"{arrays_path}: damaged ({e}).") from None

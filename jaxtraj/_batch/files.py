@@ -47,7 +47,8 @@ def read_chunk(out, k, rows, spec, run):
     path = chunk_path(out, k)
     fix = "delete it to recompute that chunk"
     try:
-        with np.load(path) as data:
+        # (opened here: `np.load` of a cut zip raises with its own file left open)
+        with open(path, "rb") as handle, np.load(handle) as data:
             files = set(data.files)
             meta = {key: str(data[key]) for key in ("run", "index", "sha256") if key in files}
             leaves = [data[f"leaf_{i:03d}"] for i in range(len(spec)) if f"leaf_{i:03d}" in files]
