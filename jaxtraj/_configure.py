@@ -47,12 +47,12 @@ def configure_cpu(devices: int | None = None, *, xla_options: bool = True) -> in
     if devices is not None and (isinstance(devices, bool) or not isinstance(devices, int) or devices < 1):
         raise ValueError(f"configure_cpu: devices must be a positive int or None, got {devices!r}")
     tune = xla_options and not os.environ.get("JAXTRAJ_NO_XLA_TUNING")
+    count = devices if devices is not None else _default_device_count()
     chosen = jax.config.jax_num_cpu_devices  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
     try:  # the public way to ask whether JAX's backends have started: a change is refused then
         jax.config.update("jax_num_cpu_devices", chosen + 1)
         jax.config.update("jax_num_cpu_devices", chosen)
     except RuntimeError:
-        count = devices if devices is not None else _default_device_count()
         if (count is None or count == len(jax.devices("cpu"))) and not (tune and _missing_xla_cpu_options()):
             return count  # already set up so (a second call): nothing to do
         raise RuntimeError(
@@ -62,7 +62,6 @@ def configure_cpu(devices: int | None = None, *, xla_options: bool = True) -> in
         ) from None
     if tune:
         os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_missing_xla_cpu_options()]).strip()
-    count = devices if devices is not None else _default_device_count()
     if count is not None:
         jax.config.update("jax_num_cpu_devices", count)
     return count
@@ -77,19 +76,20 @@ def configure_cpu_if_possible() -> None:
         pass
 
 
-_hinted = []
+_hinted = False
 
 
 def unused_cores_hint(devices) -> str | None:
     """A line for `solve_batch`'s progress output, once per process, when its batch runs on
     one CPU device of a host with several cores that `configure_cpu()` would have split
     (None otherwise)."""
+    global _hinted
     if _hinted or len(devices) != 1 or devices[0].platform != "cpu":
         return None
     cores = _default_device_count()
     if cores is None or cores < 2 or len(jax.devices("cpu")) > 1:
         return None
-    _hinted.append(True)
+    _hinted = True
     return (
         f"solve_batch: one CPU device on {cores} cores: `jt.configure_cpu()` right after the "
         "imports shards batches over every core"

@@ -512,17 +512,24 @@ def test_two_hosts_with_jax_distributed(batch, tmp_path):
             np.testing.assert_array_equal(g, w)
 
 
-def _cpu_devices(code, **env):
-    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "JAXTRAJ_CPU_DEVICES")}
+def _python(code, **env):
+    """The stdout of `python -c code` in a process without the user's CPU and XLA settings
+    (XLA_FLAGS, JAX_NUM_CPU_DEVICES, JAXTRAJ_*), plus `env`."""
+    drop = ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "JAXTRAJ_CPU_DEVICES", "JAXTRAJ_NO_XLA_TUNING")
+    base = {k: v for k, v in os.environ.items() if k not in drop}
     proc = subprocess.run(
-        [sys.executable, "-c", code + "; print(len(jax.devices('cpu')))"],
+        [sys.executable, "-c", code],
         env={**base, **env, "PYTHONPATH": REPO},
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return int(proc.stdout.strip().split()[-1])
+    return proc.stdout
+
+
+def _cpu_devices(code, **env):
+    return int(_python(code + "; print(len(jax.devices('cpu')))", **env).strip().split()[-1])
 
 
 def test_import_changes_nothing_global_but_float64():
@@ -532,17 +539,7 @@ def test_import_changes_nothing_global_but_float64():
         "import os, jax; {} print(os.environ.get('XLA_FLAGS', '<unset>')); "
         "print(jax.config.jax_num_cpu_devices, jax.config.jax_enable_x64, len(jax.devices('cpu')))"
     )
-    runs = []
-    for imports in ("", "import jaxtraj;"):
-        proc = subprocess.run(
-            [sys.executable, "-c", code.format(imports)],
-            env={**{k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, "PYTHONPATH": REPO},
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        runs.append(proc.stdout.split("\n")[:2])
+    runs = [_python(code.format(imports)).split("\n")[:2] for imports in ("", "import jaxtraj;")]
     (flags_jax, line_jax), (flags_jt, line_jt) = runs
     assert flags_jt == flags_jax == "<unset>"
     assert line_jax.split()[::2] == line_jt.split()[::2] == ["-1", "1"]  # option unset, one device here
@@ -593,7 +590,6 @@ def test_configure_cpu_sets_the_xla_cpu_options_xla_accepts():
         "print(float(jnp.sin(jnp.arange(3.0)).sum())); print(os.environ.get('XLA_FLAGS', ''))"
     )
     threshold = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000"
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAJ_NO_XLA_TUNING")}
     cases = [  # (argument, extra environment, XLA_FLAGS expected after the call)
         ("", {}, [threshold] + ["--xla_cpu_use_fusion_emitters=false"] * legacy),
         ("xla_options=False", {}, []),
@@ -604,15 +600,7 @@ def test_configure_cpu_sets_the_xla_cpu_options_xla_accepts():
             ("", {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, ["--xla_cpu_use_fusion_emitters=true", threshold])
         )
     for argument, extra, expected in cases:
-        proc = subprocess.run(
-            [sys.executable, "-c", code.format(argument)],
-            env={**env, **extra, "PYTHONPATH": REPO},
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        value, flags = proc.stdout.split("\n")[:2]
+        value, flags = _python(code.format(argument), **extra).split("\n")[:2]
         assert float(value) == pytest.approx(np.sin(1.0) + np.sin(2.0), rel=1e-15)
         assert flags.split() == expected
 
@@ -752,9 +740,9 @@ def test_a_finished_lane_asks_for_no_work(solver, monkeypatch):
 
 
 def test_solve_batch_says_once_when_a_batch_leaves_cores_idle():
-    """On one CPU device of a host with several cores (no `jt.configure_cpu()`), the first
-    `solve_batch` with progress output says how to use them, and only the first; with a
-    device per core (this test process) or a GPU it says nothing."""
+    """The line `solve_batch`'s progress prints on one CPU device of a host with several
+    cores (no `jt.configure_cpu()`): once per process; nothing with a device per core (this
+    test process)."""
     import jaxlib
 
     from jaxtraj import _configure
@@ -768,12 +756,7 @@ def test_solve_batch_says_once_when_a_batch_leaves_cores_idle():
         "print(repr(_configure.unused_cores_hint(d)))\n"
         "print(repr(_configure.unused_cores_hint(d)))\n"
     )
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES", "JAXTRAJ_CPU_DEVICES")}
-    proc = subprocess.run(
-        [sys.executable, "-c", code], env={**env, "PYTHONPATH": REPO}, capture_output=True, text=True, timeout=120
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    first, second = proc.stdout.splitlines()[:2]
+    first, second = _python(code).splitlines()[:2]
     cores = len(os.sched_getaffinity(0))
     splits = tuple(int(x) for x in jaxlib.__version__.split(".")[:2]) < (0, 11) and cores > 1
     if splits:
