@@ -138,6 +138,14 @@ def _first_order(problem, control, a, simulator):
     return G_a, E, H, rows, J
 
 
+def _num_path_rows(problem, control, simulator):
+    """How many of the inequality rows are path points (`path_values`' grid x the path
+    constraints; they come first)."""
+    if problem.path is None:
+        return 0
+    return control.num_segments * len(simulator.dense_grid()) * len(problem.path_names)
+
+
 def _knot_duplicates(problem, control, simulator, rows, J, active):
     """Active path rows that repeat the active row one grid point earlier (a knot is the
     end of one segment and the start of the next, `path_values`): the same constraint at
@@ -146,8 +154,7 @@ def _knot_duplicates(problem, control, simulator, rows, J, active):
     Lagrangian but count once in the active set, whose rows must be independent."""
     if problem.path is None:
         return jnp.zeros(rows.shape[0], bool)
-    q = len(problem.path_names)
-    num = control.num_segments * len(simulator.dense_grid()) * q
+    q, num = len(problem.path_names), _num_path_rows(problem, control, simulator)
     same = jnp.linalg.norm(J[q:num] - J[: num - q], axis=1) <= DUPLICATE_TOL * jnp.linalg.norm(J[: num - q], axis=1)
     same = same & (jnp.abs(rows[q:num] - rows[: num - q]) <= DUPLICATE_TOL * (1.0 + jnp.abs(rows[: num - q])))
     same = same & active[q:num] & active[: num - q]
@@ -310,6 +317,16 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
         return solution_values(p, c, a, simulator)
 
     _, tangents = _jvp(values, (a, theta), (da, dtheta), explicit)
+    # the multipliers' tangent from the first block row: J_A^T dlam_A = -(r1 + W da), least
+    # squares in the unit-scaled rows (Js = U S Vt: Js^T w = b gives w = U S^-1 Vt b, with U S
+    # = Js Vt^T), w = row_scale x dlam_A; zero off the active set
+    b = k.Vt @ (r1 + k.W @ da)
+    w = -(Js @ k.Vt.T) @ jnp.where(y, b / jnp.where(y, k.s**2, 1.0), 0.0)
+    dlam = jnp.where(k.rows_on, w / k.row_scale, 0.0)
+    tangents["multipliers"] = dlam[:m]
+    if problem.terminal_inequality is not None:
+        start = m + _num_path_rows(problem, control, simulator)
+        tangents["terminal_inequality_multipliers"] = dlam[start : start + tangents["terminal_inequality"].shape[0]]
     return jax.tree.map(lambda t: t * nan_unless_ok, tangents)
 
 

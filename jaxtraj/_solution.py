@@ -98,6 +98,10 @@ class Solution(eqx.Module):
     - `objective`: G at `params`.
     - `constraints`: E = M(tf, x(tf)) at `params` (named by `problem.constraint_names`).
     - `max_constraint_error`: max |E_i| (the terminal equalities).
+    - `multipliers`: the Lagrange multipliers lambda of the terminal equalities at
+      `params` (named as `constraints`; L = G + lambda^T E + nu^T C, least squares with nu >=
+      0 on the near-active inequality rows): lambda_i = -dJ*/d(target_i) for E_i = x_i(tf) -
+      target_i. Derivatives of a solve carry theirs (docs/differentiable.md).
     - `weakly_active`: whether an inequality row (path point, terminal inequality, bound,
       knot gap) is active within the solver's activity tolerance while its multiplier is
       about zero (`_kkt.WEAK_TOL` of the stationarity balance): the optimum as a function of
@@ -122,6 +126,10 @@ class Solution(eqx.Module):
       minus the worst margin) and where it occurs; None otherwise.
     - `terminal_inequality`: for problems with terminal inequalities, their values D at
       `params` (<= 0: satisfied; named by `problem.terminal_inequality_names`); None otherwise.
+    - `terminal_inequality_multipliers`: their multipliers nu >= 0 (0 on an inactive one;
+      nu_j = dJ*/d(b_j) for a row D_j = c(xf) - b_j); None without terminal inequalities.
+      `jt.kkt_report` names the multipliers of every other row (path points, bounds, knot
+      gaps).
 
     **Batched solutions.** `sols[i]` is start i's `Solution` (the same as
     `jax.tree.map(lambda x: x[i], sols)`; a slice, index array or boolean mask selects
@@ -142,6 +150,7 @@ class Solution(eqx.Module):
     constraints: jax.Array
     max_constraint_error: jax.Array
     max_violation: jax.Array
+    multipliers: jax.Array
     weakly_active: jax.Array
     projected_gradient: jax.Array
     iterations: jax.Array
@@ -152,6 +161,7 @@ class Solution(eqx.Module):
     max_path_constraint: jax.Array | None = None
     max_path_time: jax.Array | None = None
     terminal_inequality: jax.Array | None = None
+    terminal_inequality_multipliers: jax.Array | None = None
 
     @classmethod
     def from_evaluation(
@@ -175,8 +185,9 @@ class Solution(eqx.Module):
         `status` if the solver stopped (`done`), else MAX_ITERATIONS; DIVERGED instead of
         either failure when |G| or a parameter is past `DIVERGENCE` (a NONFINITE or SUCCESS
         status stays). A solve that ended NONFINITE without an accepted step has no finite
-        point: its values are NaN (not the zeros of a placeholder evaluation). Shared by
-        every solver's `postprocess`."""
+        point: its values are NaN (not the zeros of a placeholder evaluation). `multipliers`:
+        [lambda; nu] of `_kkt.stationarity_multipliers` at `params` with the knot gaps
+        (computed if not given). Shared by every solver's `postprocess`."""
         final = Status.where(
             diverged(ev.G, params) & (status != Status.SUCCESS) & (status != Status.NONFINITE),
             Status.DIVERGED,
@@ -184,12 +195,18 @@ class Solution(eqx.Module):
         )
         blank = (final == Status.NONFINITE) & (iterations == 0)
         ev = jax.tree.map(lambda x: jnp.where(blank, jnp.nan, x) if jnp.issubdtype(x.dtype, jnp.floating) else x, ev)
+        if multipliers is None:
+            multipliers = stationarity_multipliers(with_knot_gaps(control, ev, params), params, active_tol)[1]
+        multipliers = jnp.where(blank, jnp.nan, multipliers)
+        m = ev.E.shape[0]
         path = {}
         if ev.C is not None:
             worst = jnp.max(ev.C, axis=1)
             path = {"max_path_constraint": jnp.max(worst), "max_path_time": ev.path_t[jnp.argmax(worst)]}
         if ev.D is not None:
             path["terminal_inequality"] = ev.D
+            start = m + (0 if ev.C is None else ev.C.size)  # (the rows: path points, then D)
+            path["terminal_inequality_multipliers"] = multipliers[start : start + ev.D.shape[0]]
         return cls(
             params=params,
             tf=ev.tf,
@@ -197,6 +214,7 @@ class Solution(eqx.Module):
             constraints=ev.E,
             max_constraint_error=jnp.max(jnp.abs(ev.E), initial=0.0),
             max_violation=max_violation(ev, control, params),
+            multipliers=multipliers[:m],
             weakly_active=weakly_active(ev, control, params, active_tol, multipliers),
             projected_gradient=projected_gradient,
             iterations=iterations,

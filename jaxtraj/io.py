@@ -214,7 +214,13 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     arrays = {
         "params": np.asarray(sol.params),
         "constraints": np.asarray(sol.constraints),
+        "multipliers": np.asarray(sol.multipliers),
         **({} if sol.terminal_inequality is None else {"terminal_inequality": np.asarray(sol.terminal_inequality)}),
+        **(
+            {}
+            if sol.terminal_inequality_multipliers is None
+            else {"terminal_inequality_multipliers": np.asarray(sol.terminal_inequality_multipliers)}
+        ),
         "t": np.asarray(traj.t),
         "x": np.asarray(traj.x),
         "u": np.asarray(traj.u),
@@ -233,6 +239,8 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     if sol.max_path_constraint is not None:
         outputs["max_path_constraint"] = float(sol.max_path_constraint)
         outputs["max_path_time"] = float(sol.max_path_time)  # pyright: ignore[reportArgumentType]  (set with max_path_constraint)
+    named = lambda names, values: {name: float(v) for name, v in zip(names, np.asarray(values))}
+    inequalities = problem.terminal_inequality_names
     summary = {
         "problem": problem.name,
         "inputs": inputs or {},
@@ -240,16 +248,17 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         "message": Status[sol.status] or "converged",
         "trajectory_status": status_name(traj.status),
         **outputs,
-        "constraints": {name: float(e) for name, e in zip(problem.constraint_names, np.asarray(sol.constraints))},
+        "constraints": named(problem.constraint_names, sol.constraints),
+        "multipliers": named(problem.constraint_names, sol.multipliers),
         **(
             {}
             if sol.terminal_inequality is None
-            else {
-                "terminal_inequality": {
-                    name: float(d)
-                    for name, d in zip(problem.terminal_inequality_names, np.asarray(sol.terminal_inequality))
-                }
-            }
+            else {"terminal_inequality": named(inequalities, sol.terminal_inequality)}
+        ),
+        **(
+            {}
+            if sol.terminal_inequality_multipliers is None
+            else {"terminal_inequality_multipliers": named(inequalities, sol.terminal_inequality_multipliers)}
         ),
         "weakly_active": bool(sol.weakly_active),
         "iterations": int(sol.iterations),
@@ -316,8 +325,8 @@ def load(folder):
     terminal-inequality values written in both, `max_constraint_error` against the
     constraints, tf against the last knot, the trajectory's shapes and knot order, the step
     counts against the history's length (iterations <= steps <= integrations); the summary
-    must be strict JSON. A folder written before `max_violation` and `weakly_active` existed
-    loads with them NaN (unknown) and False.
+    must be strict JSON. A folder written before `max_violation`, `weakly_active` and the
+    multipliers existed loads with them NaN (unknown) and False.
 
     **Raises:** `ValueError` naming the file and what is wrong when a file is missing,
     damaged, or `arrays.npz` does not belong to `summary.json`; `RuntimeError` when JAX's
@@ -430,6 +439,24 @@ def load(folder):
         if not isinstance(named, dict) or not same(list(named.values()), terminal_inequality):
             contradicts("`terminal_inequality`", f"{len(terminal_inequality)} values there")
         terminal_inequality = jnp.asarray(terminal_inequality)
+
+    # multipliers (NaN, unknown, in folders saved before they were saved)
+    def multipliers(key, size):
+        if (key in arrays) != (key in summary):
+            contradicts(f"`{key}`", "one file has it, the other not")
+        if key not in arrays:
+            return jnp.full(size, jnp.nan)
+        values, named = array(key, 1), summary[key]
+        if values.shape[0] != size or not isinstance(named, dict) or not same(list(named.values()), values):
+            contradicts(f"`{key}`", f"{len(values)} values there for {size} constraints")
+        return jnp.asarray(values)
+
+    lam = multipliers("multipliers", constraints.shape[0])
+    nu = (
+        None
+        if terminal_inequality is None
+        else multipliers("terminal_inequality_multipliers", terminal_inequality.shape[0])
+    )
     # the summary's own numbers: max_violation is the largest of its parts, a norm is >= 0
     max_violation, projected_gradient = number("max_violation", default=np.nan), number("projected_gradient")
     parts = [number("max_constraint_error"), 0.0]
@@ -457,6 +484,7 @@ def load(folder):
         constraints=jnp.asarray(constraints),
         max_constraint_error=jnp.asarray(number("max_constraint_error")),
         max_violation=jnp.asarray(max_violation),
+        multipliers=lam,
         weakly_active=jnp.asarray(flag("weakly_active")),
         projected_gradient=jnp.asarray(projected_gradient),
         iterations=jnp.asarray(iterations),
@@ -471,6 +499,7 @@ def load(folder):
         else jnp.asarray(number("max_path_constraint")),
         max_path_time=None if "max_path_time" not in summary else jnp.asarray(number("max_path_time")),
         terminal_inequality=terminal_inequality,
+        terminal_inequality_multipliers=nu,
     )
     traj = Trajectory(
         t=jnp.asarray(t),

@@ -221,6 +221,60 @@ def test_forward_and_reverse_modes_agree():
     assert rel_err(jax.jvp(objective, (theta,), (jnp.array([0.0, 1.0]),))[1], fwd[0][1]) < 1e-10
 
 
+def test_multipliers_and_their_derivatives_in_closed_form():
+    """`sol.multipliers` of the restricted LQ problem are -dJ*/d(target) = -w h M^-1 r
+    (NumPy's linear algebra), and their Jacobians in the target, the initial state and the
+    weight (forward and reverse mode) are -w h M^-1, w h M^-1 coast and -h M^-1 r."""
+    sol = lq_solve(LQ_THETA)
+    _, _, _, M, r = lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, LQ_T)
+    h, Minv = LQ_T / LQ_K, np.linalg.inv(np.asarray(M))
+    coast = np.array([[1.0, LQ_T], [0.0, 1.0]])
+    assert rel_err(sol.multipliers, -2.0 * h * Minv @ r) < 1e-9
+    multipliers = lambda theta: lq_solve(theta).multipliers
+    for jac in (jax.jacfwd(multipliers)(LQ_THETA), jax.jacrev(multipliers)(LQ_THETA)):
+        assert rel_err(jac["target"], -2.0 * h * Minv) < 1e-8
+        assert rel_err(jac["x0"], 2.0 * h * Minv @ coast) < 1e-8
+        assert rel_err(jac["w"], -h * Minv @ r) < 1e-8
+
+
+@pytest.mark.slow
+def test_multipliers_of_bounds_and_a_terminal_inequality_in_closed_form():
+    """The minimum time to rest at d with |u| <= 1 (a vertex: both levels on their bounds):
+    lambda_position = -dtf*/dd = -1 / sqrt(d g), its derivatives 1/2 d^-3/2 g^-1/2 and
+    1/2 d^-1/2 g^-3/2; reaching x(tf) >= d (an active terminal inequality, velocity free):
+    nu = dtf*/dd = 1 / sqrt(2 d g) = `sol.terminal_inequality_multipliers`, its derivatives
+    -g (2 d g)^-3/2 and -d (2 d g)^-3/2."""
+    d, g = 1.5, 0.8
+    args = dict(MT.args)
+    solve = lambda args: jt.solve(eqx.tree_at(lambda p: p.args, MT, args), MT_CONTROL, MT_START, simulator=SIM)
+    assert rel_err(solve(args).multipliers[0], -1 / np.sqrt(d * g)) < 1e-9
+    jac = jax.jacfwd(lambda args: solve(args).multipliers[0])(args)
+    assert rel_err(jac["d"], 0.5 * d**-1.5 * g**-0.5) < 1e-7
+    assert rel_err(jac["g"], 0.5 * d**-0.5 * g**-1.5) < 1e-7
+
+    prob = jt.Problem(
+        _double_integrator,
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        args=dict(args),
+        terminal_inequality=_short_of,
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )
+    ctrl = jt.controls.PiecewiseConstant(2, free_times=False)
+    start = ctrl.initial_guess(2.0, 0.5, 0.5)
+    reach = lambda args: jt.solve(eqx.tree_at(lambda p: p.args, prob, args), ctrl, start, simulator=SIM)
+    sol = reach(args)
+    assert sol.multipliers.shape == (0,) and rel_err(sol.terminal_inequality_multipliers, 1 / np.sqrt(2 * d * g)) < 1e-9
+    report = jt.kkt_report(prob, ctrl, sol.params, simulator=SIM)
+    assert rel_err(sol.terminal_inequality_multipliers[0], report.multipliers["reach"]) < 1e-12
+    grad = jax.grad(lambda args: reach(args).terminal_inequality_multipliers[0])(args)
+    assert rel_err(grad["d"], -g * (2 * d * g) ** -1.5) < 1e-7
+    assert rel_err(grad["g"], -d * (2 * d * g) ** -1.5) < 1e-7
+
+
 @pytest.mark.slow
 def test_vmap_of_gradients_is_one_program_and_equals_a_loop():
     """jax.vmap over a batch of targets gives the gradients of a loop of solves; once

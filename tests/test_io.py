@@ -1,6 +1,7 @@
 """Result folders: exact round trips, strict JSON, and damaged or mixed files named, never
 silently accepted."""
 
+import hashlib
 import json
 import os
 import pathlib
@@ -49,6 +50,8 @@ def test_round_trip_is_exact(result, tmp_path):
     np.testing.assert_array_equal(back.history.details["radius"], sol.history.details["radius"][:n])
     np.testing.assert_array_equal(back.history.step_norm, sol.history.step_norm[:n])
     np.testing.assert_array_equal(back_traj.x, traj.x)
+    np.testing.assert_array_equal(back.multipliers, sol.multipliers)
+    assert list(summary["multipliers"]) == list(PROB.constraint_names)
     assert _strict(tmp_path / "summary.json")["inputs"]["a0"] == [0.0, 1.0, 2.0]
     assert summary["nonfinite"] == []
 
@@ -113,6 +116,8 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         (lambda d: _edit(d, lambda s: s.update(constraints={})), r"`constraints` contradicts"),
         (lambda d: _edit(d, lambda s: s.update(integrations=10**30)), r"`integrations` must be an int in 0\.\.2\*\*31"),
         (lambda d: _edit(d, lambda s: s.update(max_constraint_error=0.0)), r"`max_constraint_error` contradicts"),
+        (lambda d: _edit(d, lambda s: s.update(multipliers={"x": 1.0})), r"`multipliers` contradicts"),
+        (lambda d: _edit(d, lambda s: s.pop("multipliers")), r"`multipliers` contradicts .*one file has it"),
         (lambda d: _edit(d, lambda s: s.update(tf=None)), r"`tf` = nan contradicts"),
         (
             lambda d: (d / "summary.json").write_text('{"tf": NaN}'),
@@ -144,6 +149,8 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         "constraints",
         "huge-count",
         "max-constraint-error",
+        "multipliers",
+        "multipliers-only-in-arrays",
         "tf-null",
         "nan-literal",
         "max-violation",
@@ -316,3 +323,28 @@ def test_save_refuses_what_load_could_not_trust(result, tmp_path):
     assert list(tmp_path.iterdir()) == []
     jt.io.save(tmp_path / "d", PROB, sol, traj, extra={"mine": 1})
     assert jt.io.load(tmp_path / "d")[2]["mine"] == 1
+
+
+def test_terminal_inequality_multipliers_round_trip_and_older_folders_load(tmp_path):
+    """The capped terminal problem (min 1/2 int u^2 - 2 x(1), x(1) <= 1): its cap's multiplier
+    nu = 1 (u = 2 - nu = 1, closed form) is saved and loaded by name; a folder saved before
+    the multipliers were (both files without them) loads with them NaN."""
+    entry = jt.problems.classic.get("capped-terminal")
+    sol = jt.solve(entry.problem, entry.control, entry.start, simulator=SIM)
+    assert abs(float(sol.terminal_inequality_multipliers[0]) - 1.0) < 1e-8
+    traj = jt.simulate(entry.problem, entry.control, sol.params, simulator=SIM)
+    summary = jt.io.save(tmp_path, entry.problem, sol, traj)
+    assert summary["terminal_inequality_multipliers"] == {"x(1) cap": float(sol.terminal_inequality_multipliers[0])}
+    back = jt.io.load(tmp_path)[0]
+    np.testing.assert_array_equal(back.terminal_inequality_multipliers, sol.terminal_inequality_multipliers)
+
+    with np.load(tmp_path / "arrays.npz") as data:
+        arrays = {k: data[k] for k in data.files if "multipliers" not in k}
+    np.savez(tmp_path / "arrays.npz", **arrays)
+    _edit(tmp_path, lambda s: [s.pop(k) for k in ("multipliers", "terminal_inequality_multipliers")])
+    _edit(
+        tmp_path, lambda s: s.update(arrays_sha256=hashlib.sha256((tmp_path / "arrays.npz").read_bytes()).hexdigest())
+    )
+    old = jt.io.load(tmp_path)[0]
+    assert old.multipliers.shape == (0,) and np.isnan(old.terminal_inequality_multipliers).all()
+    np.testing.assert_array_equal(old.params, sol.params)
