@@ -8,6 +8,7 @@ import re
 import jax
 import jax.core
 import jax.numpy as jnp
+import numpy as np
 
 from ._problem import Problem
 from .controls import AbstractControl, FixedFinalTime, FreeInitialState
@@ -67,6 +68,13 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
         and not any(isinstance(v, jax.core.Tracer) for v in (T, T_problem))
     ):
         fits = float(T) == float(T_problem)
+    changed = [
+        f"{name} {np.asarray(value)} (built with {np.asarray(box)})"
+        for name, value, box in _bounds_and_boxes(problem)
+        if not isinstance(value, jax.core.Tracer) and np.any(np.asarray(value) != np.asarray(box))
+    ]
+    if changed:
+        raise ValueError(f"`problem`: {'; '.join(changed)}. {BOUNDS_CHANGED}")
     if not fits:
         wants = []
         if problem.final_time is not None:
@@ -78,6 +86,38 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
             f"({', '.join(wants) or 'no fixed final time, no free initial state'}): pass "
             "`problem.parametrize(family)` for a control family (jt.controls.*)."
         )
+
+
+#: Why a problem's control-bound arrays must keep the values it was built with.
+BOUNDS_CHANGED = (
+    "The control bounds fix which rows the solvers build (a static copy of them, taken by "
+    "jt.Problem), so new values put into `control_lower` / `control_upper` after construction "
+    "(eqx.tree_at, jax.vmap over them) would be solved at the old ones: build a jt.Problem per "
+    "bound value instead (their derivatives at the built values are exact)."
+)
+
+
+def _bounds_and_boxes(problem: Problem):
+    """`(name, array, built values)` of the problem's declared control bounds."""
+    pairs = zip(
+        ("control_lower", "control_upper"), (problem.control_lower, problem.control_upper), problem._control_box
+    )
+    return [(name, value, box) for name, value, box in pairs if value is not None]
+
+
+def bounds_changed(problem: Problem):
+    """Whether the control-bound arrays (traced or not) differ from the values the problem was
+    built with (`BOUNDS_CHANGED`): a traced bool."""
+    changed = jnp.asarray(False)
+    for _, value, box in _bounds_and_boxes(problem):
+        changed = changed | jnp.any(jnp.asarray(value) != jnp.asarray(box))
+    return changed
+
+
+def traced_bounds(problem: Problem) -> bool:
+    """Whether a control-bound array is a tracer (under the user's jit, vmap or grad), so that
+    only the compiled program can compare it with the built values."""
+    return any(isinstance(value, jax.core.Tracer) for _, value, _ in _bounds_and_boxes(problem))
 
 
 def check_inputs(problem: Problem, control: AbstractControl, a):

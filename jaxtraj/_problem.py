@@ -112,7 +112,9 @@ class Problem(eqx.Module):
       `jt.controls.FixedFinalTime`). Needs an `objective` or a `running_cost`.
     - `tf_bounds`: optional `(lower, upper)` on the free final time (either may be +-inf):
       terminal inequalities `lower - tf <= 0`, `tf - upper <= 0` named `"tf lower bound"` /
-      `"tf upper bound"`, after the user's.
+      `"tf upper bound"`, after the user's. Read back as `problem.tf_bounds`: 0-d arrays
+      (None for an absent side), with derivatives: `eqx.tree_at(lambda p: p.tf_bounds[1],
+      problem, T)` puts in another, traced, upper bound (docs/differentiable.md).
     - `free_initial_state`: initial-state components that are decision parameters too, as
       a sequence of state names (or indices), or a dict `{name: (lower, upper)}` with
       bounds (either may be +-inf). `x0` holds their start values. Parameter vectors then
@@ -328,6 +330,15 @@ class Problem(eqx.Module):
         """`(lower, upper)`, one entry per `free_initial_state` component (+-inf: unbounded)."""
         return np.asarray(self._initial_box[0], float), np.asarray(self._initial_box[1], float)
 
+    @property
+    def tf_bounds(self):
+        """`(lower, upper)` of a bounded free final time, 0-d arrays (None on a side without
+        a bound, or for both: no `tf_bounds`)."""
+        fn = self.terminal_inequality
+        while isinstance(fn, _OnUserState):
+            fn = fn.fn
+        return (fn.lower, fn.upper) if isinstance(fn, _TimeBounds) else None
+
     def parametrize(self, family: AbstractControl) -> AbstractControl:
         """The control the solvers optimize for this problem, from a control family: the
         family itself, or for a fixed `final_time` `FixedFinalTime(family, T)` (no tf entry),
@@ -407,7 +418,10 @@ class Problem(eqx.Module):
         above, below = np.isfinite(hi), np.isfinite(lo) and lo > 0
         if not (above or below):
             return
-        self.terminal_inequality = _TimeBounds(self.terminal_inequality, lo if below else None, hi if above else None)
+        as_array = lambda v: np.asarray(v, dtype=np.float64)  # (arrays: they have derivatives)
+        self.terminal_inequality = _TimeBounds(
+            self.terminal_inequality, as_array(lo) if below else None, as_array(hi) if above else None
+        )
         self.terminal_inequality_names = (
             self.terminal_inequality_names
             + (("tf lower bound",) if below else ())
@@ -479,11 +493,13 @@ class _StateBounds(eqx.Module):
 
 
 class _TimeBounds(eqx.Module):
-    """The user's terminal inequalities (if any), then lower - tf and tf - upper."""
+    """The user's terminal inequalities (if any), then lower - tf and tf - upper (0-d float64
+    arrays, so that a solve is differentiable in them and one compiled solver takes any
+    values: `problem.terminal_inequality.lower` / `.upper`)."""
 
     terminal_inequality: Callable | None
-    lower: float | None = eqx.field(static=True)
-    upper: float | None = eqx.field(static=True)
+    lower: np.ndarray | jax.Array | None = None
+    upper: np.ndarray | jax.Array | None = None
 
     def __call__(self, tf, xf, args):
         rows = [] if self.terminal_inequality is None else [jnp.asarray(self.terminal_inequality(tf, xf, args))]

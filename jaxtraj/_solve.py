@@ -1,10 +1,20 @@
 """`jt.solve`: check the input, pick the default solver, run the driver (differentiable by
 the implicit function theorem: `_implicit`)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_inputs, check_memory, check_problem_and_control, check_solver_memory, memory_refusal
+from ._checks import (
+    BOUNDS_CHANGED,
+    bounds_changed,
+    check_inputs,
+    check_memory,
+    check_problem_and_control,
+    check_solver_memory,
+    memory_refusal,
+    traced_bounds,
+)
 from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, run
 from ._implicit import differentiable_solve
 from ._kalman_sqp import KalmanSQP
@@ -83,7 +93,11 @@ def solve(
     if not (isinstance(progress, int) and progress >= 0):
         raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
 
+    checked = traced_bounds(problem)
+
     def solve_from(problem, control, a0):
+        if checked:  # (concrete bounds: checked above, `check_problem_and_control`)
+            a0 = eqx.error_if(a0, bounds_changed(problem), f"jt.solve: {BOUNDS_CHANGED}")
         return run(solver, problem, control, a0, simulator, max_steps, progress)
 
     # the activity tolerance of the solver's own KKT test, where it has one

@@ -276,6 +276,38 @@ def test_multipliers_of_bounds_and_a_terminal_inequality_in_closed_form():
 
 
 @pytest.mark.slow
+def test_an_active_final_time_bound_is_differentiable():
+    """The LQ problem with a free final time bounded by `tf_bounds=(0.5, T)`: the energy falls
+    as tf grows, so tf* = T and J*(T) is the fixed-time problem's (NumPy's linear algebra);
+    dJ*/dT through the bound's array against central differences of that, and the bound's
+    multiplier nu = -dJ*/dT. One compiled solve takes other bound values (vmap)."""
+    prob = jt.Problem(
+        _double_integrator,
+        LQ_X0,
+        _on_target,
+        ("position", "velocity"),
+        running_cost=_energy,
+        args=LQ_ARGS,
+        tf_bounds=(0.5, LQ_T),
+    )
+    ctrl = jt.controls.PiecewiseConstant(LQ_K, free_times=False)
+    start = ctrl.initial_guess(1.5, 0.0, 0.0)
+
+    def solve(T):
+        return jt.solve(eqx.tree_at(lambda p: p.tf_bounds[1], prob, T), ctrl, start, simulator=SIM)
+
+    reference = lambda T: lq_reference(LQ_ARGS["target"], 2.0, LQ_X0, T)[0]
+    step = 1e-5
+    fd = (reference(LQ_T + step) - reference(LQ_T - step)) / (2 * step)
+    sol = solve(jnp.asarray(LQ_T))
+    assert sol.status == jt.Status.SUCCESS and rel_err(sol.objective, reference(LQ_T)) < 1e-9 and fd < 0
+    assert rel_err(jax.grad(lambda T: solve(T).objective)(jnp.asarray(LQ_T)), fd) < 1e-6
+    assert rel_err(sol.terminal_inequality_multipliers[-1], -fd) < 1e-6
+    objectives = jax.vmap(lambda T: solve(T).objective)(jnp.array([1.5, 2.5]))
+    assert rel_err(objectives, np.array([reference(1.5), reference(2.5)])) < 1e-9
+
+
+@pytest.mark.slow
 def test_vmap_of_gradients_is_one_program_and_equals_a_loop():
     """jax.vmap over a batch of targets gives the gradients of a loop of solves; once
     compiled, a new batch of the same size compiles nothing."""
@@ -335,6 +367,22 @@ def test_weakly_active_row_is_reported_and_let_go():
     assert point.differentiable and point.weakly_active[0] and np.sum(point.weakly_active) == 1
     grad = jax.grad(lambda args: min_time(args, problem=prob))(dict(prob.args))
     assert rel_err(grad["d"], 1 / np.sqrt(d * g)) < 1e-7
+
+
+def test_bound_values_other_than_the_built_ones_are_refused():
+    """The solvers take the control bounds' static copy: other values put into the arrays
+    (concrete, or traced under vmap) are an error, not a solve at the old bounds; the
+    built values themselves pass, traced or not."""
+
+    def tf_in(upper):
+        return jt.solve(eqx.tree_at(lambda p: p.control_upper, MT, upper), MT_CONTROL, MT_START, simulator=SIM).tf
+
+    with pytest.raises(ValueError, match=r"`problem`: control_upper \[2\.\] \(built with \[1\.\]\)"):
+        tf_in(jnp.array([2.0]))
+    with pytest.raises(Exception, match=r"build a jt\.Problem per bound value"):
+        jax.vmap(tf_in)(jnp.array([[1.0], [2.0]]))
+    same = jax.vmap(tf_in)(jnp.array([[1.0], [1.0]]))
+    assert rel_err(same, 2 * np.sqrt(1.5 / 0.8)) < 1e-9
 
 
 def test_start_has_no_derivative_and_plain_solves_are_unchanged():
