@@ -16,6 +16,7 @@ assembled from the forward sensitivities (`al_value`, a `jax.custom_vjp`). The p
 (The algorithm, its history and measurements: docs/solvers/augmented-lagrangian.md.)
 """
 
+import math
 from typing import Any, cast
 
 import equinox as eqx
@@ -370,8 +371,8 @@ class AugmentedLagrangian(AbstractSolver):
             return isinstance(v, int) and not isinstance(v, bool) and v >= low
 
         checks = {
-            "ctol": lambda: self.ctol > 0,
-            "gtol": lambda: self.gtol > 0,
+            "ctol": lambda: 0 < self.ctol < math.inf,
+            "gtol": lambda: 0 < self.gtol < math.inf,
             "inner_tol_init": lambda: self.inner_tol_init > 0,
             "inner_tol_shrink": lambda: 0 < self.inner_tol_shrink <= 1,
             "max_inner": lambda: is_int(self.max_inner, 1),

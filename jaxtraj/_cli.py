@@ -573,10 +573,47 @@ def _reproduce(args):
     return 0
 
 
+class _ReaderGone:
+    """stdout that outlives its reader: once a write meets a closed pipe (`jaxtraj solve ... |
+    head`), further output goes to /dev/null and `gone` is set, so that a finished solve still
+    writes its results before the command ends with 141 (the shell's code for SIGPIPE)."""
+
+    def __init__(self, stream):
+        self.stream, self.gone = stream, False
+
+    def _guard(self, call, *args):
+        if not self.gone:
+            try:
+                return call(*args)
+            except BrokenPipeError:
+                self.gone = True
+                os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())  # no second error at exit
+
+    def write(self, text):
+        self._guard(self.stream.write, text)
+        return len(text)
+
+    def flush(self):
+        self._guard(self.stream.flush)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
 def main(argv=None):
     from ._configure import configure_cpu_if_possible
 
     configure_cpu_if_possible()  # a device per core and XLA's options (jt.configure_cpu)
+    stdout = sys.stdout
+    guarded = sys.stdout = _ReaderGone(stdout)
+    try:
+        code = _main(argv)
+        return 141 if guarded.gone else code
+    finally:
+        sys.stdout = stdout
+
+
+def _main(argv):
     try:
         args = _parser().parse_args(argv)
         if args.command == "problems":

@@ -20,6 +20,8 @@ second-order correction, the Hessians.
 (The algorithm, its history and measurements: docs/solvers/kalman-sqp.md.)
 """
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
 from jax import lax
@@ -185,16 +187,16 @@ class KalmanSQP(AbstractSolver):
                 "(what SUCCESS guarantees); pass a larger acceptable_gtol with it."
             )
         checks = {
-            "ctol": lambda: self.ctol > 0,
-            "gtol": lambda: self.gtol > 0,
-            "acceptable_gtol": lambda: self.acceptable_gtol >= self.gtol,
+            "ctol": lambda: 0 < self.ctol < math.inf,  # (an infinite tolerance would promise nothing)
+            "gtol": lambda: 0 < self.gtol < math.inf,
+            "acceptable_gtol": lambda: self.gtol <= self.acceptable_gtol < math.inf,
             "a_t": lambda: self.a_t >= 1,
             "min_curvature": lambda: 0 < self.min_curvature < 1,
             "r_rel": lambda: 0 < self.r_rel < 1,
             "path_dependence": lambda: 0 < self.path_dependence < 1,
             "elastic": lambda: 0 < self.elastic < 1,
-            "exact_iterations": lambda: isinstance(self.exact_iterations, int) and self.exact_iterations >= 0,
-            "acceptable_steps": lambda: isinstance(self.acceptable_steps, int) and self.acceptable_steps >= 1,
+            "exact_iterations": lambda: isinstance(self.exact_iterations, int) and 0 <= self.exact_iterations < 2**31,
+            "acceptable_steps": lambda: isinstance(self.acceptable_steps, int) and 1 <= self.acceptable_steps < 2**31,
         }
         check_settings("KalmanSQP", self, checks)
 
@@ -235,7 +237,8 @@ class KalmanSQP(AbstractSolver):
         nearly zero curvature cannot take the step over and leave the inequalities' part of
         it at round-off once the step is scaled down to the radius. `gap_rows` (the
         trust region: `_bounds.knot_gap_rows`, the rows of the KKT test) are more rows of
-        that QP (multipliers not returned); appendix C then keeps a share of each gap the QP
+        that QP (multipliers not returned, but those of its active set enter the estimate of
+        the others: `_stationary_multipliers`); appendix C then keeps a share of each gap the QP
         closes. The rows with positive multipliers in `lam` (the last QP's) start the active
         set (`dual_active_set(warm=)`), and a parameter bound and the box's row on the same
         side of the same parameter enter as one row, the tighter (`_redundant_simple_rows`)."""
@@ -245,6 +248,7 @@ class KalmanSQP(AbstractSolver):
         r = self.r_rel * hph + 1e-300
         d, P1 = self._equality_step(prior, P, ev, r)
         rows, m = inequality_rows(ev), ev.E.shape[0]
+        gaps_held = None  # the knot-gap rows in the QP's final active set
         if rows is not None:
             # Inequalities C + C_a d <= 0 (path ones on the grid points, then terminal ones) by
             # the dual active-set method (`dual_active_set`): from the equality-constrained
@@ -368,10 +372,12 @@ class KalmanSQP(AbstractSolver):
 
             unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False))
             _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
+            if gap_rows is not None:
+                gaps_held = jnp.where(active[C.shape[0] - gap_rows[0].shape[0] :, None], gap_rows[1], 0.0)
             active = active[:n_rows]
         d, _ = keep_knots_ordered(d, P1, knots, dknots, self.a_t, collapse=self.path_active)
         # multipliers of [E; active C] from stationarity (nu >= 0, zero off the active set)
-        lam_qp = self._stationary_multipliers(ev, B, d, None if rows is None else active)
+        lam_qp = self._stationary_multipliers(ev, B, d, None if rows is None else active, gaps_held)
         if rows is not None:
             lam_qp = lam_qp.at[m:].set(jnp.where(active, jnp.maximum(lam_qp[m:], 0.0), 0.0))
         return d, lam_qp
@@ -411,15 +417,24 @@ class KalmanSQP(AbstractSolver):
         return jnp.where(refine, d2, d1), P1
 
     @staticmethod
-    def _stationary_multipliers(ev, B, d, active):
-        """Least-squares solution of [H; C_a(active)]^T lam = -(G_a + B d)."""
+    def _stationary_multipliers(ev, B, d, active, held=None):
+        """Least-squares solution of [H; C_a(active); held]^T lam = -(G_a + B d), returned
+        without the multipliers of `held` (the knot gaps in the QP's active set). A collapsed
+        segment is held by its gap (a positive multiplier, the objective's pull on the knot):
+        left out of the solve, that pull went into the multipliers of E, which then missed
+        the optimum's by 1-5 % however close the iterate came, and the merit's minimum with a
+        capped penalty lay a violation of ~|delta lambda| / mu away (the pendulum's minimum
+        time: cycles out of and back to its optimum, 28-3789 iterations; docs/history.md)."""
         rows = inequality_rows(ev)
         A = (
             ev.H
             if active is None or rows is None
             else jnp.concatenate([ev.H, jnp.where(active[:, None], rows[1], 0.0)])
         )
-        return multipliers(A, ev.G_a + B @ d)
+        n = A.shape[0]
+        if held is not None:
+            A = jnp.concatenate([A, held])
+        return multipliers(A, ev.G_a + B @ d)[:n]
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
         """Second-order correction of a full step d: the smallest step (metric B) with

@@ -230,6 +230,10 @@ class Problem(eqx.Module):
         self.control_names = (
             _names(control_names, "control_names") if control_names else tuple(f"u{i + 1}" for i in range(num_controls))
         )
+        if len(self.control_names) != num_controls:
+            raise ValueError(
+                f"`control_names` must have {num_controls} entries (one per control); got {len(self.control_names)}."
+            )
         self.control_lower = None if control_lower is None else _bound(control_lower, num_controls, "control_lower")
         self.control_upper = None if control_upper is None else _bound(control_upper, num_controls, "control_upper")
         lo, hi = self.control_lower, self.control_upper
@@ -532,4 +536,7 @@ def _names(value, name):
     names = tuple(value)
     if not all(isinstance(v, str) for v in names):
         raise ValueError(f"`{name}` must contain strings; got {names!r}.")
+    repeated = sorted({v for v in names if names.count(v) > 1})
+    if repeated:  # (results, reports and saved folders name each row: one would hide another)
+        raise ValueError(f"`{name}` must name each row once; {repeated} repeat(s) in {names!r}.")
     return names

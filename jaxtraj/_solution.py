@@ -216,7 +216,7 @@ class Solution(eqx.Module):
             max_violation=max_violation(ev, control, params),
             multipliers=multipliers[:m],
             weakly_active=weakly_active(ev, control, params, active_tol, multipliers),
-            projected_gradient=projected_gradient,
+            projected_gradient=jnp.where(blank, jnp.nan, projected_gradient),
             iterations=iterations,
             integrations=integrations,
             steps=steps,

@@ -205,7 +205,9 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         raise ValueError(f"`sol` must be one jt.Solution (a batch's `sols[i]`); got {_describe(sol)}.")
     if not isinstance(traj, Trajectory) or np.ndim(traj.knots) != 1:
         raise ValueError(f"`traj` must be one jt.Trajectory (jt.simulate of `sol.params`); got {_describe(traj)}.")
-    if not np.array_equal(np.asarray(traj.knots)[-1:], np.asarray(sol.tf)[None], equal_nan=True):
+    # (a NONFINITE solve without a finite point reports tf = NaN: its trajectory is the start's)
+    pointless = sol.status == Status.NONFINITE and np.isnan(float(sol.tf))
+    if not pointless and not np.array_equal(np.asarray(traj.knots)[-1:], np.asarray(sol.tf)[None], equal_nan=True):
         raise ValueError(
             f"`traj` ends at t = {float(np.asarray(traj.knots)[-1])!r}, `sol` at tf = {float(sol.tf)!r}: "
             "save the trajectory of `sol.params` (jt.simulate(problem, control, sol.params))."
@@ -421,7 +423,8 @@ def load(folder):
     if not np.array_equal(number("max_constraint_error"), np.max(np.abs(constraints), initial=0.0), equal_nan=True):
         contradicts("`max_constraint_error`", "max |constraints| there")
     tf, knots = number("tf"), array("knots", 1)
-    if not knots.size or not np.array_equal(tf, knots[-1], equal_nan=True):
+    pointless = summary.get("status") == "NONFINITE" and np.isnan(tf)  # (as `save`)
+    if not knots.size or not (pointless or np.array_equal(tf, knots[-1], equal_nan=True)):
         contradicts(f"`tf` = {float(tf)!r}", f"last knot {float(knots[-1]) if knots.size else None!r}")
     if np.any(np.diff(knots) < 0):
         contradicts("the trajectory", "its knots are out of order")

@@ -491,3 +491,21 @@ def test_default_result_folders_do_not_collide(tmp_path, monkeypatch):
         os.path.join("results", "p-20261206-120000-2"),
     )
     assert sorted(os.listdir(tmp_path / "results")) == ["p-20261206-120000", "p-20261206-120000-2"]
+
+
+@pytest.mark.slow
+def test_a_reader_that_leaves_loses_no_result(tmp_path):
+    """`jaxtraj solve ... | head -2`: the reader closes the pipe while the command still prints;
+    the finished solve is written all the same, and the command ends with 141 (SIGPIPE's)."""
+    env = {**os.environ, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": ROOT}
+    out = tmp_path / "max-range"
+    command = [sys.executable, "-m", "jaxtraj", "solve", "max-range", "--steps", "40", "--out", str(out), "--no-plot"]
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=tmp_path) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        proc.stdout.readline()
+        proc.stdout.close()  # the reader leaves after the first line
+        err = proc.stderr.read().decode()
+        code = proc.wait(timeout=600)
+    assert code == 141, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and abs(summary["objective"] + 0.25) < 1e-9

@@ -196,6 +196,9 @@ def _energy_problem(**kwargs):
         ({"names": "abc"}, r"`constraint_names` must be a sequence of names, not one string"),
         ({"names": ("a", "b", 3)}, r"`constraint_names` must contain strings"),
         ({"state_names": "xyz"}, r"`state_names` must be a sequence of names"),
+        # a repeated name hid one row in saved results, which then did not load (issue 51)
+        ({"names": ("p", "p")}, r"`constraint_names` must name each row once; \['p'\] repeat"),
+        ({"control_names": ("a", "b")}, r"`control_names` must have 1 entries .*got 2"),
     ],
 )
 def test_problem_arguments_are_checked(kwargs, message):
@@ -220,10 +223,15 @@ def test_complex_parameters_are_refused():
         lambda: jt.TrustRegion(eta=[1e-4]),
         lambda: jt.TrustRegion(feasibility_first="yes"),
         lambda: jt.TrustRegion(feasibility_first=True),  # a threshold since 2026-12-04
+        # an infinite tolerance said SUCCESS at an infeasible start; 2**70 overflowed (issue 51)
+        lambda: jt.KalmanSQP(ctol=float("inf")),
+        lambda: jt.KalmanSQP(gtol=float("inf"), acceptable_gtol=float("inf")),
+        lambda: jt.AugmentedLagrangian(ctol=float("inf")),
+        lambda: jt.KalmanSQP(acceptable_steps=2**70),
     ],
 )
 def test_a_setting_of_the_wrong_type_names_the_field(make):
-    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta|feasibility_first)`"):
+    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta|feasibility_first|acceptable_steps)`"):
         make()
 
 

@@ -348,3 +348,17 @@ def test_terminal_inequality_multipliers_round_trip_and_older_folders_load(tmp_p
     old = jt.io.load(tmp_path)[0]
     assert old.multipliers.shape == (0,) and np.isnan(old.terminal_inequality_multipliers).all()
     np.testing.assert_array_equal(old.params, sol.params)
+
+
+def test_a_solve_without_a_finite_point_is_saved_with_the_starts_trajectory(result, tmp_path):
+    """A NONFINITE solve before any accepted step reports tf = NaN (dynamics NaN at the start:
+    `jaxtraj solve` then died in `save`, its table printed); its trajectory is the start's,
+    which ends elsewhere. Saved and loaded as such; a NaN tf with another status is refused."""
+    sol, traj = result
+    nan = jnp.asarray(jnp.nan)
+    failed = eqx.tree_at(lambda s: (s.tf, s.objective, s.status), sol, (nan, nan, jt.Status.NONFINITE))
+    jt.io.save(tmp_path / "failed", PROB, failed, traj)
+    back = jt.io.load(tmp_path / "failed")[0]
+    assert jt.status_name(back.status) == "NONFINITE" and np.isnan(float(back.tf))
+    with pytest.raises(ValueError, match=r"`sol` at tf = nan"):
+        jt.io.save(tmp_path / "other", PROB, eqx.tree_at(lambda s: s.status, failed, jt.Status.STALLED), traj)

@@ -250,6 +250,7 @@ def test_a_start_without_a_finite_point_reports_nan_not_zeros():
         assert jt.status_name(sol.status) == "NONFINITE"
         assert np.isnan(float(sol.tf)) and np.isnan(float(sol.objective))
         assert np.isnan(float(sol.max_constraint_error)) and np.all(np.isnan(np.asarray(sol.constraints)))
+        assert np.isnan(float(sol.projected_gradient)) and np.all(np.isnan(np.asarray(sol.multipliers)))
 
 
 def _reach_min_time(**kw):
