@@ -7,11 +7,15 @@ histories to `OUTDIR/earth-mars-thesis.png`. Run: `python examples/earth_mars_th
 references; e.g. `results 4` solves case 4 alone); the same as `jaxtraj reproduce --out OUTDIR`.
 """
 
-import sys
+import argparse
 
 import jaxtraj as jt
 from jaxtraj.reproduce import main
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("outdir", nargs="?", default="results", help="where the table and figure go (results)")
+    parser.add_argument("cases", nargs="*", type=int, choices=range(1, 8), help="case numbers (default: all seven)")
+    args = parser.parse_args()
     jt.configure_cpu()  # a CPU device per core and XLA options (before any JAX computation)
-    main(*sys.argv[1:])
+    main(args.outdir, *args.cases)

@@ -185,13 +185,16 @@ class Problem(eqx.Module):
         free_initial_state=(),
         name="problem",
     ):
-        x0 = np.asarray(x0, dtype=np.float64)
+        try:
+            x0 = np.asarray(x0, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"`x0` must be numbers (the initial state); got {x0!r}.") from None
         if x0.ndim != 1 or x0.size == 0:
             raise ValueError(f"`x0` must be a non-empty 1-D array; got shape {x0.shape}.")
         if not np.all(np.isfinite(x0)):
             raise ValueError(f"`x0` must be finite; got {x0}.")
-        if not (isinstance(num_controls, int) and num_controls >= 1):
-            raise ValueError(f"`num_controls` must be an int >= 1; got {num_controls!r}.")
+        if not (isinstance(num_controls, int) and not isinstance(num_controls, bool) and 1 <= num_controls <= 10_000):
+            raise ValueError(f"`num_controls` must be an int in 1..10000; got {num_controls!r}.")
         if final_time is not None:
             try:
                 T = np.asarray(final_time, dtype=np.float64)

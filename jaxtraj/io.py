@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ._checks import require_float64
+from ._problem import Problem
 from ._simulate import Trajectory
 from ._solution import History, Solution
 from ._status import STATUS_NAMES, Status, status_name
@@ -196,11 +197,13 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     Monte Carlo results; its keys may not replace the summary's own). Returns the summary (a
     dict).
 
-    **Raises:** `ValueError` naming the argument when `sol` is not one (unbatched)
-    `jt.Solution`, `traj` not a `jt.Trajectory` of its parameters (another tf), `inputs`
-    or `extra` cannot be written as JSON or `extra` names a key of the summary (nothing is
-    written then), or when `folder` is a file.
+    **Raises:** `ValueError` naming the argument when `problem` is not a `jt.Problem`, `sol`
+    is not one (unbatched) `jt.Solution`, `traj` not a `jt.Trajectory` of its parameters
+    (another tf), `inputs` or `extra` cannot be written as JSON or `extra` names a key of the
+    summary (nothing is written then), or when `folder` is a file.
     """
+    if not isinstance(problem, Problem):
+        raise ValueError(f"`problem` must be the jt.Problem that `sol` solves; got {type(problem).__name__}.")
     if not isinstance(sol, Solution) or np.shape(sol.tf) != ():
         raise ValueError(f"`sol` must be one jt.Solution (a batch's `sols[i]`); got {_describe(sol)}.")
     if not isinstance(traj, Trajectory) or np.ndim(traj.knots) != 1:
@@ -335,6 +338,8 @@ def load(folder):
     float64 mode is off (as every entry point).
     """
     require_float64()
+    if not isinstance(folder, str | os.PathLike):
+        raise ValueError(f"`folder` must be a path (str or os.PathLike); got {type(folder).__name__}.")
     summary_path = os.path.join(folder, "summary.json")
     arrays_path = os.path.join(folder, "arrays.npz")
     for path in (summary_path, arrays_path):

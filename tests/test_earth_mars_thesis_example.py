@@ -30,3 +30,13 @@ def test_bad_case_numbers_are_refused():
 
     with pytest.raises(ValueError, match=r"`cases` must be case numbers 1\.\.7; got \[9\]"):
         main("unused", 9)
+
+
+def test_help_prints_usage_and_solves_nothing(tmp_path, monkeypatch, capsys):
+    """`--help` ran the whole reproduction into a folder named `--help` (issue 51)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [EXAMPLE, "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(EXAMPLE, run_name="__main__")
+    assert exit_.value.code == 0 and "usage:" in capsys.readouterr().out
+    assert list(tmp_path.iterdir()) == []

@@ -206,6 +206,23 @@ def test_problem_arguments_are_checked(kwargs, message):
         _energy_problem(**kwargs)
 
 
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"x0": ["a", "b"]}, r"`x0` must be numbers \(the initial state\); got \['a', 'b'\]"),
+        ({"num_controls": True}, r"`num_controls` must be an int in 1\.\.10000; got True"),
+        ({"num_controls": 2**40}, r"`num_controls` must be an int in 1\.\.10000"),
+    ],
+)
+def test_problem_sizes_and_states_name_the_argument(change, message):
+    """Issue 51's re-audit: a string state and a bool or huge control count (the latter was
+    killed for memory while building per-channel tables) are one-line errors."""
+    base = jt.problems.analytic.min_energy_double_integrator()
+    kwargs = {"x0": base.x0, "num_controls": 1, **change}
+    with pytest.raises(ValueError, match=message):
+        jt.Problem(base.dynamics, terminal=base.terminal, constraint_names=base.constraint_names, **kwargs)
+
+
 def test_complex_parameters_are_refused():
     ctrl = C.PiecewiseLinear(3)
     a = np.asarray(ctrl.initial_guess(1.2, 0.0, 0.0)) + 0j

@@ -621,3 +621,22 @@ def test_monte_carlo_argument_errors():
         monte_carlo(*args, 10, process_noise=-np.eye(2))
     with pytest.raises(ValueError, match="`additive`"):
         monte_carlo(*args, 10, execution=ControlErrors(additive=[0.1, 0.2]))
+
+
+@pytest.mark.parametrize(
+    ("weights", "message"),
+    [
+        ((np.full((2, 2), np.nan), 0.1 * np.eye(1), np.eye(2)), r"`Q` must be finite"),
+        ((np.eye(2), -np.eye(1), np.eye(2)), r"`R` must be positive definite; its least eigenvalue is -1"),
+        ((-np.eye(2), np.eye(1), np.eye(2)), r"`Q` must be positive semidefinite"),
+        ((np.eye(2), np.eye(1), np.array([[1.0, 2.0], [0.0, 1.0]])), r"`Qf` must be symmetric"),
+    ],
+)
+def test_lqr_weights_are_checked(weights, message):
+    """Issue 51's re-audit: NaN or indefinite weights gave NaN or meaningless gains, and every
+    Monte Carlo run then failed without a word."""
+    lin = linearize(_linear_problem(_DI_A, _DI_B), _DI_CTRL, _DI_PARAMS, simulator=_DI_SIM)
+    with pytest.raises(ValueError, match=message):
+        tracking_lqr(lin, *weights)
+    with pytest.raises(ValueError, match=r"`state_scale` must be finite and > 0"):
+        bryson_weights(lin, 0.0, 0.05, 1e-4)

@@ -362,3 +362,12 @@ def test_a_solve_without_a_finite_point_is_saved_with_the_starts_trajectory(resu
     assert jt.status_name(back.status) == "NONFINITE" and np.isnan(float(back.tf))
     with pytest.raises(ValueError, match=r"`sol` at tf = nan"):
         jt.io.save(tmp_path / "other", PROB, eqx.tree_at(lambda s: s.status, failed, jt.Status.STALLED), traj)
+
+
+def test_arguments_of_the_wrong_type_are_named(result, tmp_path):
+    """Issue 51's re-audit: `save` with a problem's name for the problem, `load(None)`."""
+    sol, traj = result
+    with pytest.raises(ValueError, match=r"`problem` must be the jt.Problem that `sol` solves; got str"):
+        jt.io.save(tmp_path, "prob", sol, traj)
+    with pytest.raises(ValueError, match=r"`folder` must be a path .*got NoneType"):
+        jt.io.load(None)

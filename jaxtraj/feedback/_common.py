@@ -2,6 +2,7 @@
 
 import diffrax
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -23,6 +24,23 @@ def check_shape(name, shape, *allowed):
     if tuple(shape) not in [tuple(a) for a in allowed]:
         want = " or ".join(str(tuple(a)) for a in allowed)
         raise ValueError(f"`{name}` must have shape {want}; got {tuple(shape)}.")
+
+
+def check_weight(name, M, definite=False):
+    """A cost weight (concrete; a traced one is left to the caller): finite, symmetric and
+    positive semidefinite (`definite`: positive definite), within round-off of its norm."""
+    if isinstance(M, jax.core.Tracer):
+        return
+    M = np.asarray(M)
+    if not np.all(np.isfinite(M)):
+        raise ValueError(f"`{name}` must be finite; got {M}.")
+    scale = max(float(np.max(np.abs(M), initial=0.0)), 1e-300)
+    if np.max(np.abs(M - M.T), initial=0.0) > 1e-10 * scale:
+        raise ValueError(f"`{name}` must be symmetric; got {M}.")
+    least = float(np.min(np.linalg.eigvalsh(M), initial=np.inf))
+    if (least <= 0.0) if definite else (least < -1e-12 * scale):
+        kind = "positive definite" if definite else "positive semidefinite"
+        raise ValueError(f"`{name}` must be {kind}; its least eigenvalue is {least:.3g}.")
 
 
 def per_step(name, x, N, shape):

@@ -2,12 +2,14 @@
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import as_float64, check_inputs, check_memory, memory_refusal
 from .._simulate import RK4, simulation_status
 from .._status import Status, as_indexable
-from ._common import check_shape, interp_rows
+from ._common import check_shape, check_weight, interp_rows
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import continuous_lqr, discrete_lqr, propagate_covariance
 from ._sampled import bounded_control, check_gains, gain_sequence, noise_free, sample_step
@@ -161,6 +163,8 @@ def bryson_weights(lin: Linearization, state_scale, control_scale, terminal_scal
     def diag(name, scale, k):
         scale = as_float64(scale)
         check_shape(name, scale.shape, (), (k,))
+        if not isinstance(scale, jax.core.Tracer) and not np.all(np.isfinite(scale) & (scale > 0)):
+            raise ValueError(f"`{name}` must be finite and > 0 (an acceptable deviation); got {np.asarray(scale)}.")
         return jnp.diag(jnp.broadcast_to(1.0 / scale**2, (k,)))
 
     return (
@@ -189,6 +193,8 @@ def tracking_lqr(lin: Linearization, Q, R, Qf, *, discrete=True, multiplicative=
     check_shape("Q", Q.shape, (n, n))
     check_shape("R", R.shape, (m, m))
     check_shape("Qf", Qf.shape, (n, n))
+    for name, M in (("Q", Q), ("R", R), ("Qf", Qf)):
+        check_weight(name, M, definite=name == "R")
     if discrete:
         if kwargs:
             raise ValueError(f"unexpected keyword(s) {sorted(kwargs)} for discrete=True.")
