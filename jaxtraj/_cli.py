@@ -575,18 +575,19 @@ def _reproduce(args):
 
 class _ReaderGone:
     """stdout that outlives its reader: once a write meets a closed pipe (`jaxtraj solve ... |
-    head`), further output goes to /dev/null and `gone` is set, so that a finished solve still
-    writes its results before the command ends with 141 (the shell's code for SIGPIPE)."""
+    head`) or fails (a full disk under `> file`), further output goes to /dev/null and `gone`
+    holds the error, so that a finished solve still writes its results before the command
+    ends (141, the shell's code for SIGPIPE, after a closed pipe)."""
 
     def __init__(self, stream):
-        self.stream, self.gone = stream, False
+        self.stream, self.gone = stream, None
 
     def _guard(self, call, *args):
-        if not self.gone:
+        if self.gone is None:
             try:
                 return call(*args)
-            except BrokenPipeError:
-                self.gone = True
+            except OSError as e:
+                self.gone = e
                 os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())  # no second error at exit
 
     def write(self, text):
@@ -608,9 +609,14 @@ def main(argv=None):
     guarded = sys.stdout = _ReaderGone(stdout)
     try:
         code = _main(argv)
-        return 141 if guarded.gone else code
     finally:
         sys.stdout = stdout
+    if isinstance(guarded.gone, BrokenPipeError):
+        return 141
+    if guarded.gone is not None:
+        print(f"jaxtraj: error: writing to stdout failed ({guarded.gone.strerror or guarded.gone})", file=sys.stderr)
+        return 1
+    return code
 
 
 def _main(argv):

@@ -509,3 +509,36 @@ def test_a_reader_that_leaves_loses_no_result(tmp_path):
     assert code == 141, err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "SUCCESS" and abs(summary["objective"] + 0.25) < 1e-9
+
+
+@pytest.mark.slow
+def test_stdout_that_fails_loses_no_result(tmp_path, monkeypatch):
+    """stdout on a full disk (`jaxtraj solve ... > file`): the result is written all the same
+    and the command says so in one line, exit status 1 (it was a traceback; issue 51)."""
+
+    class Full:
+        def __init__(self, handle):
+            self.handle = handle
+
+        def write(self, text):
+            raise OSError(28, "No space left on device")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return self.handle.fileno()
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("JAXTRAJ_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "max-range"
+    saved = {name: getattr(jax.config, name) for name in _CACHE_OPTIONS}  # (as `run_here`)
+    try:
+        with open(os.devnull, "w") as sink:
+            monkeypatch.setattr(sys, "stdout", Full(sink))
+            code = _cli.main(["solve", "max-range", "--steps", "40", "--out", str(out), "--no-plot"])
+    finally:
+        for name, value in saved.items():
+            jax.config.update(name, value)
+    assert code == 1
+    assert json.loads((out / "summary.json").read_text())["status"] == "SUCCESS"

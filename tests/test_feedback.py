@@ -640,3 +640,30 @@ def test_lqr_weights_are_checked(weights, message):
         tracking_lqr(lin, *weights)
     with pytest.raises(ValueError, match=r"`state_scale` must be finite and > 0"):
         bryson_weights(lin, 0.0, 0.05, 1e-4)
+
+
+@pytest.mark.parametrize(
+    ("noise", "message"),
+    [
+        ({"initial_covariance": np.full((2, 2), np.nan)}, r"`initial_covariance` must be finite"),
+        ({"process_noise": -np.eye(2)}, r"`process_noise` must be positive semidefinite"),
+        ({"execution": ControlErrors(additive=0.1), "process_noise": np.eye(2)}, None),
+    ],
+)
+def test_monte_carlo_noise_is_checked(noise, message):
+    """Issue 51's re-audit: a NaN covariance made every run fail and reported the spread as
+    -0; it is refused, and a spread without two finite runs is NaN, never 0."""
+    prob = _linear_problem(_DI_A, _DI_B)
+    if message is not None:
+        with pytest.raises(ValueError, match=message):
+            monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(0), 4, simulator=_DI_SIM, **noise)
+        return
+    with pytest.raises(ValueError, match=r"`sigma_pointing_deg` must be finite and >= 0; got inf"):
+        ThrustErrors(0.01, np.inf)
+    runs = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(0), 4, simulator=_DI_SIM, **noise)
+    assert int(runs.num_failed) == 0 and np.all(np.asarray(runs.terminal_std) > 0)
+    from jaxtraj.feedback._monte_carlo import _masked_stats
+
+    one_finite = np.array([True, False, False])
+    _, cov, _ = _masked_stats(jnp.ones((3, 2)), jnp.asarray(one_finite), jnp.array([50.0]))
+    assert np.all(np.isnan(np.asarray(cov)))

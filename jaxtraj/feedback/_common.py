@@ -35,7 +35,7 @@ def check_weight(name, M, definite=False):
     if not np.all(np.isfinite(M)):
         raise ValueError(f"`{name}` must be finite; got {M}.")
     scale = max(float(np.max(np.abs(M), initial=0.0)), 1e-300)
-    if np.max(np.abs(M - M.T), initial=0.0) > 1e-10 * scale:
+    if np.max(np.abs(M - M.T), initial=0.0) > 1e-12 * scale:
         raise ValueError(f"`{name}` must be symmetric; got {M}.")
     least = float(np.min(np.linalg.eigvalsh(M), initial=np.inf))
     if (least <= 0.0) if definite else (least < -1e-12 * scale):

@@ -38,8 +38,8 @@ def _sigma(name, value):
     value = as_float64(value)
     if value.ndim != 0:
         raise ValueError(f"`{name}` must be a scalar; got shape {value.shape}.")
-    if not isinstance(value, jax.core.Tracer) and not bool(value >= 0):
-        raise ValueError(f"`{name}` must be >= 0; got {float(value)}.")
+    if not isinstance(value, jax.core.Tracer) and not bool((value >= 0) & jnp.isfinite(value)):
+        raise ValueError(f"`{name}` must be finite and >= 0; got {float(value)}.")
     return value
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from .._checks import as_float64, check_inputs, check_memory, memory_refusal
 from .._simulate import RK4, simulation_status
 from .._status import Status, as_indexable
-from ._common import check_shape, symmetrize
+from ._common import check_shape, check_weight, symmetrize
 from ._errors import ThrustErrors
 from ._linearize import check_execution, check_simulator_rk4
 from ._sampled import Noise, bounded_control, check_gains, gain_sequence, noise_free, rollout
@@ -22,11 +22,8 @@ def _psd_sqrt(name, M, n):
         return None
     M = as_float64(M)
     check_shape(name, M.shape, (n, n))
+    check_weight(name, M)
     w, V = jnp.linalg.eigh(symmetrize(M))
-    if not isinstance(M, jax.core.Tracer):
-        scale = max(float(jnp.max(jnp.abs(M))), 1e-300)
-        if float(jnp.max(jnp.abs(M - M.T))) > 1e-12 * scale or float(jnp.min(w)) < -1e-12 * scale:
-            raise ValueError(f"`{name}` must be a symmetric positive semidefinite matrix.")
     return V * jnp.sqrt(jnp.maximum(w, 0.0))[None, :]
 
 
@@ -282,7 +279,7 @@ def _masked_stats(values, finite, levels):
     keep = finite[:, None]
     mean = jnp.sum(jnp.where(keep, values, 0.0), axis=0) / count
     d = jnp.where(keep, values - mean[None], 0.0)
-    cov = symmetrize(d.T @ d / (count - 1))
+    cov = symmetrize(d.T @ d / jnp.where(count >= 2, count - 1, jnp.nan))  # (NaN, not 0, without two runs)
     pct = jnp.nanpercentile(jnp.where(keep, values, jnp.nan), levels, axis=0)
     return mean, cov, pct
 
