@@ -542,3 +542,16 @@ def test_stdout_that_fails_loses_no_result(tmp_path, monkeypatch):
             jax.config.update(name, value)
     assert code == 1
     assert json.loads((out / "summary.json").read_text())["status"] == "SUCCESS"
+
+
+@pytest.mark.slow
+def test_a_slow_solve_is_not_run_twice_for_its_warm_time(tmp_path, run_here, monkeypatch):
+    """The warm time came from solving again, which doubled a slow run (344 s for a 172 s
+    solve; issue 51): past `WARM_RERUN_LIMIT` seconds the solve runs once."""
+    calls = []
+    solve = jt.solve
+    monkeypatch.setattr(jt, "solve", lambda *a, **k: calls.append(1) or solve(*a, **k))
+    monkeypatch.setattr(_cli, "WARM_RERUN_LIMIT", 0.0)
+    r = run_here("solve", "max-range", "--steps", "40", "--out", str(tmp_path / "o"), "--no-plot")
+    assert r.returncode == 0, r.stderr
+    assert len(calls) == 1 and "not run (first call > 0 s)" in r.stdout
