@@ -660,6 +660,12 @@ def test_monte_carlo_noise_is_checked(noise, message):
         return
     with pytest.raises(ValueError, match=r"`sigma_pointing_deg` must be finite and >= 0; got inf"):
         ThrustErrors(0.01, np.inf)
+    for key, text in (
+        (2**70, r"`key` as an int seed must be in 0\.\.2\*\*64 - 1"),
+        ("k", r"`key` must be a JAX PRNG key"),
+    ):
+        with pytest.raises(ValueError, match=text):
+            monte_carlo(prob, _DI_CTRL, _DI_PARAMS, key, 4, simulator=_DI_SIM, **noise)
     runs = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(0), 4, simulator=_DI_SIM, **noise)
     assert int(runs.num_failed) == 0 and np.all(np.asarray(runs.terminal_std) > 0)
     from jaxtraj.feedback._monte_carlo import _masked_stats

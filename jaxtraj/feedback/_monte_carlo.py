@@ -45,9 +45,21 @@ def _noise_model(problem, execution, process_noise, initial_covariance, correlat
 
 
 def _as_key(key):
-    if isinstance(key, int) and not isinstance(key, bool):
-        return jax.random.key(key)
-    return key
+    """`key` as a PRNG key: a key (typed, or a legacy uint32 pair) as it is, an int seed in
+    0..2**64 - 1 through `jax.random.key`, None (no noise) as None; anything else is a
+    ValueError naming `key`."""
+    if key is None:
+        return None
+    if isinstance(key, int | np.integer) and not isinstance(key, bool):
+        if not 0 <= int(key) < 2**64:
+            raise ValueError(f"`key` as an int seed must be in 0..2**64 - 1; got {int(key)}.")
+        return jax.random.key(int(key))
+    dtype = getattr(key, "dtype", None)
+    if dtype is not None and (
+        jnp.issubdtype(dtype, jax.dtypes.prng_key) or (dtype == jnp.uint32 and jnp.shape(key)[-1:] == (2,))
+    ):
+        return key
+    raise ValueError(f"`key` must be a JAX PRNG key (jax.random.key(seed)) or an int seed; got {key!r}.")
 
 
 class ClosedLoopTrajectory(eqx.Module):
