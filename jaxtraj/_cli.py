@@ -236,7 +236,9 @@ def _user_function(spec):
         raise
     except SystemExit as e:  # the module ended the process while importing: nothing was solved
         raise _UsageError(f"importing {where!r} called sys.exit({e.code!r}); nothing was solved") from None
-    except Exception as e:  # the user's module failed to import: say so in one line
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # the user's module failed to import (any exception): one line
         raise _UsageError(f"importing {where!r} failed: {type(e).__name__}: {e}") from None
     fn = getattr(module, name, None)
     if not callable(fn):
@@ -253,7 +255,9 @@ def load_user_problem(spec, args):
         out = fn()
     except SystemExit as e:
         raise _UsageError(f"{spec} called sys.exit({e.code!r}); nothing was solved") from None
-    except Exception as e:
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # (a user's own BaseException subclass too)
         raise _UsageError(f"{spec} raised {type(e).__name__}: {e}") from None
     if isinstance(out, jt.Problem):
         prob, ctrl, a0 = out, None, None

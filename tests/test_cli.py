@@ -117,6 +117,14 @@ def plane():
 
 def broken():
     raise RuntimeError("bad model")
+
+
+class Stop(BaseException):
+    pass
+
+
+def stops():
+    raise Stop("halt")
 """
 
 
@@ -132,6 +140,8 @@ def test_solve_runs_a_users_own_problem_from_a_file(tmp_path, run_here):
     assert (out / "solution.png").exists()
     r = run_here("solve", "mine.py:broken", "--out", str(out))
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:broken raised RuntimeError: bad model"
+    r = run_here("solve", "mine.py:stops", "--out", str(out))  # a BaseException of the user's: a traceback before
+    assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: mine.py:stops raised Stop: halt"
     r = run_here("solve", "mine.py:plane", "--tf", "-2", "--out", str(out))
     assert (
         r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --tf -2: `tf` must be a finite number > 0; got -2.0."
