@@ -97,6 +97,24 @@ def min_time_problem(d=1.5, g=0.8, **changes):
     )
 
 
+def reach_problem(d, g):
+    """Reach x(tf) >= d (a terminal inequality) with x'' = g u, |u| <= 1, velocity free, in
+    least time: u = 1 on both pieces, tf* = sqrt(2 d / g). `(problem, control, start)`."""
+    prob = jt.Problem(
+        _double_integrator,
+        jnp.zeros(2),
+        lambda tf, xf, args: jnp.zeros(0),
+        (),
+        args={"d": jnp.asarray(d), "g": jnp.asarray(g)},
+        terminal_inequality=_short_of,
+        terminal_inequality_names=("reach",),
+        control_lower=-1.0,
+        control_upper=1.0,
+    )
+    ctrl = jt.controls.PiecewiseConstant(2, free_times=False)
+    return prob, ctrl, ctrl.initial_guess(2.0, 0.5, 0.5)
+
+
 MT = min_time_problem()
 MT_CONTROL = jt.controls.PiecewiseConstant(2)
 MT_START = MT_CONTROL.initial_guess(2.5, 1.0, -1.0)
@@ -180,19 +198,7 @@ def test_an_active_terminal_inequality():
     pieces, tf* = sqrt(2 d / g), its derivatives in d and g through the active inequality
     and bound rows."""
     d, g = 1.5, 0.8
-    prob = jt.Problem(
-        _double_integrator,
-        jnp.zeros(2),
-        lambda tf, xf, args: jnp.zeros(0),
-        (),
-        args={"d": jnp.asarray(d), "g": jnp.asarray(g)},
-        terminal_inequality=_short_of,
-        terminal_inequality_names=("reach",),
-        control_lower=-1.0,
-        control_upper=1.0,
-    )
-    ctrl = jt.controls.PiecewiseConstant(2, free_times=False)
-    start = ctrl.initial_guess(2.0, 0.5, 0.5)
+    prob, ctrl, start = reach_problem(d, g)
 
     def tf(args):
         return jt.solve(eqx.tree_at(lambda p: p.args, prob, args), ctrl, start, simulator=SIM).tf
@@ -252,19 +258,7 @@ def test_multipliers_of_bounds_and_a_terminal_inequality_in_closed_form():
     assert rel_err(jac["d"], 0.5 * d**-1.5 * g**-0.5) < 1e-7
     assert rel_err(jac["g"], 0.5 * d**-0.5 * g**-1.5) < 1e-7
 
-    prob = jt.Problem(
-        _double_integrator,
-        jnp.zeros(2),
-        lambda tf, xf, args: jnp.zeros(0),
-        (),
-        args=dict(args),
-        terminal_inequality=_short_of,
-        terminal_inequality_names=("reach",),
-        control_lower=-1.0,
-        control_upper=1.0,
-    )
-    ctrl = jt.controls.PiecewiseConstant(2, free_times=False)
-    start = ctrl.initial_guess(2.0, 0.5, 0.5)
+    prob, ctrl, start = reach_problem(d, g)
     reach = lambda args: jt.solve(eqx.tree_at(lambda p: p.args, prob, args), ctrl, start, simulator=SIM)
     sol = reach(args)
     assert sol.multipliers.shape == (0,) and rel_err(sol.terminal_inequality_multipliers, 1 / np.sqrt(2 * d * g)) < 1e-9
