@@ -421,10 +421,9 @@ class KalmanSQP(AbstractSolver):
         """Least-squares solution of [H; C_a(active); held]^T lam = -(G_a + B d), returned
         without the multipliers of `held` (the knot gaps in the QP's active set). A collapsed
         segment is held by its gap (a positive multiplier, the objective's pull on the knot):
-        left out of the solve, that pull went into the multipliers of E, which then missed
-        the optimum's by 1-5 % however close the iterate came, and the merit's minimum with a
-        capped penalty lay a violation of ~|delta lambda| / mu away (the pendulum's minimum
-        time: cycles out of and back to its optimum, 28-3789 iterations; docs/history.md)."""
+        left out of the solve, that pull goes into the multipliers of E, and the merit's
+        minimum with a capped penalty lies a violation of ~|delta lambda| / mu away from the
+        optimum (docs/history.md, session 39)."""
         rows = inequality_rows(ev)
         A = (
             ev.H

@@ -502,7 +502,7 @@ class _StateBounds(eqx.Module):
 class _TimeBounds(eqx.Module):
     """The user's terminal inequalities (if any), then lower - tf and tf - upper (0-d float64
     arrays, so that a solve is differentiable in them and one compiled solver takes any
-    values: `problem.terminal_inequality.lower` / `.upper`)."""
+    values; read them as `Problem.tf_bounds`)."""
 
     terminal_inequality: Callable | None
     lower: np.ndarray | jax.Array | None = None
