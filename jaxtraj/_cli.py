@@ -92,7 +92,14 @@ def _parser():
 
 #: Upper limits of the size options, checked before anything is allocated (beyond them
 #: memory or compile time explode; a larger study belongs in Python with jt.solve_batch).
-LIMITS = {"starts": 1_000_000, "steps": 10_000, "max_steps": 1_000_000, "segments": 1_000, "monte_carlo": 1_000_000}
+LIMITS = {
+    "starts": 1_000_000,
+    "steps": 10_000,
+    "max_steps": 1_000_000,
+    "segments": 1_000,
+    "channels": 1_000,
+    "monte_carlo": 1_000_000,
+}
 
 
 def _positive(name, value, limit=None):
@@ -127,8 +134,11 @@ def parse_control(spec):
     counts, make = makers[kind]
     if len(nums) not in counts:
         raise _UsageError(f"malformed control spec {spec!r}: expected {_CONTROLS}")
-    if isinstance(nums[0], int) and nums[0] > LIMITS["segments"]:
-        raise _UsageError(f"control spec {spec!r}: at most {LIMITS['segments']:,} segments; got {nums[0]:,}")
+    # (checked before the family is made: a huge count reached NumPy, whose error was a traceback)
+    sizes = [("segments", nums[0])] + ([("channels", nums[1])] if kind != "spline" and len(nums) == 2 else [])
+    for what, value in sizes:
+        if value > LIMITS[what]:
+            raise _UsageError(f"--control {spec!r}: at most {LIMITS[what]:,} {what}; got {value:,}")
     try:
         return make(*nums)
     except ValueError as e:

@@ -280,6 +280,12 @@ def test_a_users_odd_problem_gets_one_line(args, message, tmp_path, run_here):
         (("solve", "json:nothing"), "'json' has no function 'nothing'"),
         (("solve", "earth-mars", "--control", "linear:4:2.5"), "malformed control spec 'linear:4:2.5'"),
         (("solve", "earth-mars", "--control", "linear:4:2"), "2 channel(s) but `problem` 'earth-mars'"),
+        # issue 51: a huge channel count reached NumPy (a traceback)
+        (
+            ("solve", "min-energy", "--control", f"linear:3:{2**70}"),
+            f"--control 'linear:3:{2**70}': at most 1,000 channels",
+        ),
+        (("solve", "min-energy", "--control", "constant:3:1001"), "at most 1,000 channels; got 1,001"),
     ],
 )
 def test_bad_input_gives_one_line_error(args, message, tmp_path, run_here):
@@ -467,7 +473,10 @@ _OPTIONS = {  # (valid values, invalid values) for `solve min-energy`
     "--max-steps": (["50"], ["0", "1e3", "10000000000"]),
     "--seed": (["0", "7"], ["-1", str(2**70), "s"]),
     "--monte-carlo": (["0"], ["1", "-3", "1000000000", "2"]),
-    "--control": (["linear:2"], ["", "wiggly:3", "linear:x", "linear:100000", "linear:2:3", "spline:1"]),
+    "--control": (
+        ["linear:2"],
+        ["", "wiggly:3", "linear:x", "linear:100000", "linear:2:3", "spline:1", f"linear:3:{2**70}"],
+    ),
     "--tf": ([], ["-2", "nan", "1.0", "x"]),
     "--solver": (["sqp", "kalman"], ["magic", ""]),
 }
