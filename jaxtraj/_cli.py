@@ -577,8 +577,25 @@ def _solve(args):
         raise _UsageError(
             f"writing the results to --out {out!r} failed ({e.strerror or e}); it holds what it held before"
         ) from None
+    if sols is None:  # an earlier batch run's chunks are no part of this result (mixed results)
+        _remove_earlier_batch(os.path.join(out, "batch"))
     print(f"wrote {', '.join(written)} to {out}")
     return 0 if best.status == jt.Status.SUCCESS else 1
+
+
+def _remove_earlier_batch(folder):
+    """Remove the `batch` folder (chunks and manifest) an earlier run with --starts N left in
+    --out, after a single-start result replaced that run's summary: the rerun leaves nothing
+    of the earlier run (its figures go with `io.staged_folder`'s listing). A folder without
+    a batch manifest is not jaxtraj's and stays."""
+    import shutil
+
+    if not os.path.isfile(os.path.join(folder, "manifest.json")) or os.path.islink(folder):
+        return
+    try:
+        shutil.rmtree(folder)
+    except OSError as e:
+        print(f"jaxtraj: warning: could not remove the earlier run's {folder} ({e.strerror or e})", file=sys.stderr)
 
 
 def _reproduce(args):

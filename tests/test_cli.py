@@ -380,6 +380,17 @@ def test_multistart_batch_reports_progress_and_best(tmp_path, run_here):
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert lines[-1].startswith("jaxtraj: error:") and message in lines[-1], r.stderr
+    # issue 51: a later single-start run into the same --out leaves nothing of the batch run
+    # (its batch/ folder was kept beside the new summary: mixed results)
+    (out / "notes.txt").write_text("mine")
+    single = run_here("solve", "min-energy", "--control", "linear:2", "--steps", "4", "--no-plot", "--out", str(out))
+    assert single.returncode == 0, single.stderr
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "arrays.npz",
+        "notes.txt",
+        "summary.json",
+    ]
+    assert json.loads((out / "summary.json").read_text())["inputs"]["starts"] == 1
 
 
 @pytest.mark.parametrize("solver", ["sqp", "sqp-tr"])
