@@ -199,7 +199,9 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
 
     **Raises:** `ValueError` naming the argument when `problem` is not a `jt.Problem`, `sol`
     is not one (unbatched) `jt.Solution`, `traj` not a `jt.Trajectory` of its parameters
-    (another tf), `inputs` or `extra` cannot be written as JSON or `extra` names a key of the
+    (another tf, or a final state whose terminal constraints, objective or terminal
+    inequalities differ from `sol`'s by more than 1e-6 relative: simulate `sol.params` with
+    the solve's simulator), `inputs` or `extra` cannot be written as JSON or `extra` names a key of the
     summary (nothing is written then), or when `folder` is a file.
     """
     if not isinstance(problem, Problem):
@@ -215,6 +217,8 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
             f"`traj` ends at t = {float(np.asarray(traj.knots)[-1])!r}, `sol` at tf = {float(sol.tf)!r}: "
             "save the trajectory of `sol.params` (jt.simulate(problem, control, sol.params))."
         )
+    if not pointless:
+        _check_trajectory_values(problem, sol, traj)
     n = int(sol.steps)
     arrays = {
         "params": np.asarray(sol.params),
@@ -290,6 +294,40 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         text = json.dumps(summary, indent=2, allow_nan=False).encode()
         atomic_write(os.path.join(stage, "summary.json"), lambda f: f.write(text))
     return summary
+
+
+#: How far the values at `traj`'s final state may be from `sol`'s, relative to max(1, |value|):
+#: round-off between the solver's and `jt.simulate`'s compiled integration (about 1e-15), or a
+#: somewhat finer simulator; another parameter vector moves them by far more.
+_TRAJECTORY_RTOL = 1e-6
+
+
+def _check_trajectory_values(problem, sol, traj):
+    """`traj` is the trajectory of `sol.params`: its final state gives `sol`'s terminal
+    constraints, objective and terminal inequalities (the problem's functions at (tf, xf);
+    no integration). A value `sol` does not know (non-finite) is not compared."""
+    tf, xf = jnp.asarray(traj.knots)[-1], jnp.asarray(traj.xf)
+    pairs = [("constraints", problem.terminal, sol.constraints), ("objective", problem.objective, sol.objective)]
+    if problem.terminal_inequality is not None and sol.terminal_inequality is not None:
+        pairs.append(("terminal_inequality", problem.terminal_inequality, sol.terminal_inequality))
+    for name, fn, value in pairs:
+        value = np.atleast_1d(np.asarray(value, dtype=np.float64))
+        try:
+            got = np.atleast_1d(np.asarray(fn(tf, xf, problem.args), dtype=np.float64))
+        except Exception as e:  # a trajectory of another problem (another state size)
+            raise ValueError(
+                f"`traj` does not fit `problem` ({type(e).__name__} evaluating its {name} at the final state)."
+            ) from None
+        known = np.isfinite(value)
+        off = known & ~(np.abs(got - value) <= _TRAJECTORY_RTOL * np.maximum(1.0, np.abs(value)))
+        if got.shape != value.shape or off.any():
+            i = int(np.argmax(off)) if got.shape == value.shape else 0
+            raise ValueError(
+                f"`traj` is not the trajectory of `sol.params`: its final state gives {name} "
+                f"{got.tolist() if got.shape != value.shape else float(got[i])!r}, `sol` has "
+                f"{value.tolist() if got.shape != value.shape else float(value[i])!r} (it ends at the same tf: "
+                "another parameter vector). Save jt.simulate(problem, control, sol.params) with the solve's simulator."
+            )
 
 
 def _describe(value) -> str:

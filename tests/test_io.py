@@ -306,9 +306,10 @@ def test_load_of_a_mutated_folder_refuses_or_agrees(result, data):
 
 
 def test_save_refuses_what_load_could_not_trust(result, tmp_path):
-    """Issue 51: `save` refuses a batch, a trajectory of other parameters, and `extra`
-    entries that would replace the summary's own (they made a folder load as SUCCESS with
-    violation 0, or one that `load` then refused): nothing is written."""
+    """Issue 51: `save` refuses a batch, a trajectory of other parameters (another tf, or the
+    same tf and another final state), and `extra` entries that would replace the summary's
+    own (they made a folder load as SUCCESS with violation 0, or one that `load` then
+    refused): nothing is written."""
     sol, traj = result
     batch = jax.tree.map(lambda x: jnp.stack([x, x]), sol)
     with pytest.raises(ValueError, match=r"`sol` must be one jt.Solution .* got Solution with a batch axis \(2,\)"):
@@ -316,6 +317,12 @@ def test_save_refuses_what_load_could_not_trust(result, tmp_path):
     other = jt.simulate(PROB, CTRL, sol.params.at[-1].set(2.0), simulator=SIM)
     with pytest.raises(ValueError, match=r"`traj` ends at t = 2\.0, `sol` at tf = 1\.0"):
         jt.io.save(tmp_path / "b", PROB, sol, other)
+    # another parameter vector with the same tf: its final state misses (it was accepted)
+    same_tf = jt.simulate(PROB, CTRL, sol.params.at[0].add(0.5), simulator=SIM)
+    with pytest.raises(
+        ValueError, match=r"`traj` is not the trajectory of `sol\.params`: its final state gives constr"
+    ):
+        jt.io.save(tmp_path / "e", PROB, sol, same_tf)
     with pytest.raises(
         ValueError, match=r"`extra` may not replace the summary's own entries; got \['params', 'status'\]"
     ):
@@ -323,6 +330,7 @@ def test_save_refuses_what_load_could_not_trust(result, tmp_path):
     assert list(tmp_path.iterdir()) == []
     jt.io.save(tmp_path / "d", PROB, sol, traj, extra={"mine": 1})
     assert jt.io.load(tmp_path / "d")[2]["mine"] == 1
+    jt.io.save(tmp_path / "f", PROB, sol, jt.simulate(PROB, CTRL, sol.params))  # a finer simulator: the same
 
 
 def test_terminal_inequality_multipliers_round_trip_and_older_folders_load(tmp_path):
