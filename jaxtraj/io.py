@@ -235,6 +235,10 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
         "u": np.asarray(traj.u),
         "knots": np.asarray(traj.knots),
         "xf": np.asarray(traj.xf),
+        # (the summary's numbers again, exact: `load` checks the summary against them)
+        "objective": np.asarray(sol.objective, dtype=np.float64),
+        "projected_gradient": np.asarray(sol.projected_gradient, dtype=np.float64),
+        "iterations": np.asarray(int(sol.iterations), dtype=np.int64),
         **{f"history_{k}": np.asarray(getattr(sol.history, k))[:n] for k in _HISTORY_FIELDS},
         **{f"{_DETAIL}{k}": np.asarray(v)[:n] for k, v in sol.history.details.items()},
     }
@@ -365,10 +369,12 @@ def load(folder):
 
     The summary and the arrays are checked against each other before anything is returned:
     the arrays' checksum (a summary without one is refused), the parameters, constraint and
-    terminal-inequality values written in both, `max_constraint_error` against the
-    constraints, tf against the last knot, the trajectory's shapes and knot order, the step
-    counts against the history's length (iterations <= steps <= integrations); the summary
-    must be strict JSON. A folder written before `max_violation`, `weakly_active` and the
+    terminal-inequality values written in both, the objective, projected gradient and
+    iteration count against their copies in the arrays (a NaN of a non-finite solve equals
+    NaN; a folder saved before the copies existed has none to check), `max_constraint_error`
+    against the constraints, tf against the last knot, the trajectory's shapes and knot
+    order, the step counts against the history's length (iterations <= steps <=
+    integrations); the summary must be strict JSON. A folder written before `max_violation`, `weakly_active` and the
     multipliers existed loads with them NaN (unknown) and False.
 
     **Raises:** `ValueError` naming the file and what is wrong when a file is missing,
@@ -515,6 +521,19 @@ def load(folder):
         )
     if projected_gradient < 0:
         raise ValueError(f"{summary_path}: `projected_gradient` is a norm; got {float(projected_gradient)!r}.")
+    # the summary's objective, projected gradient and iteration count against their exact
+    # copies in the arrays (folders saved before those copies existed have none)
+    for key, value in (
+        ("objective", number("objective")),
+        ("projected_gradient", number("projected_gradient")),
+        ("iterations", iterations),
+    ):
+        if key not in arrays:
+            continue
+        stored = array(key, 0, np.int64 if key == "iterations" else np.float64)
+        # (null in the summary stands for any non-finite number: NaN or +-inf)
+        if not (stored == value or (np.isnan(value) and not np.isfinite(stored))):
+            contradicts(f"`{key}` = {np.asarray(value).item()!r}", f"{stored.item()!r} there")
     # SUCCESS promises feasibility within the solver's tolerance (the history's last entry)
     status = _status(summary.get("status"), summary_path, "status")
     tol = history["constraint_tolerance"][-1] if steps else np.nan

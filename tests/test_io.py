@@ -132,6 +132,17 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
             lambda d: _edit(d, lambda s: s.update(max_violation=0.5)),
             r"status SUCCESS with `max_violation` = 0\.5 contradicts .*constraint tolerance 1e-10 in its history",
         ),
+        # the summary's objective, projected gradient and iteration count against the arrays
+        (lambda d: _edit(d, lambda s: s.update(objective=s["objective"] + 1)), r"`objective` = 7\.0 contradicts .*npz"),
+        (lambda d: _edit(d, lambda s: s.update(objective=None)), r"`objective` = nan contradicts .*\(6\.0 there"),
+        (
+            lambda d: _edit(d, lambda s: s.update(projected_gradient=1.0)),
+            r"`projected_gradient` = 1\.0 contradicts",
+        ),
+        (
+            lambda d: _edit(d, lambda s: s.update(iterations=s["iterations"] - 1)),
+            r"`iterations` = 5 contradicts .*\(6 there",
+        ),
     ],
     ids=[
         "truncated-summary",
@@ -156,6 +167,10 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         "max-violation",
         "negative-norm",
         "success-with-violation",
+        "objective",
+        "objective-null",
+        "projected-gradient",
+        "iteration-count",
     ],
 )
 def test_damaged_folders_name_the_file(result, tmp_path, damage, message):
@@ -302,6 +317,10 @@ def test_load_of_a_mutated_folder_refuses_or_agrees(result, data):
             np.testing.assert_array_equal(back.params, f["params"])
             np.testing.assert_array_equal(back.constraints, f["constraints"])
             assert int(back.steps) == f["history_objective"].shape[0]
+            # the summary's numbers agree with their copies in the arrays (the saved ones)
+            for key in ("objective", "projected_gradient", "iterations"):
+                saved = f[key] if key in f.files else getattr(sol, key)
+                assert getattr(back, key) == saved or (np.isnan(getattr(back, key)) and not np.isfinite(saved)), key
         assert back.params.dtype == jnp.float64 and back.tf.shape == ()
 
 
@@ -347,7 +366,8 @@ def test_terminal_inequality_multipliers_round_trip_and_older_folders_load(tmp_p
     np.testing.assert_array_equal(back.terminal_inequality_multipliers, sol.terminal_inequality_multipliers)
 
     with np.load(tmp_path / "arrays.npz") as data:
-        arrays = {k: data[k] for k in data.files if "multipliers" not in k}
+        old_keys = ("objective", "projected_gradient", "iterations")  # (issue 51's copies: not yet saved)
+        arrays = {k: data[k] for k in data.files if "multipliers" not in k and k not in old_keys}
     np.savez(tmp_path / "arrays.npz", **arrays)
     _edit(tmp_path, lambda s: [s.pop(k) for k in ("multipliers", "terminal_inequality_multipliers")])
     _edit(
