@@ -55,7 +55,6 @@ compilation is timed apart; "warm wall" is the faster of two calls of the compil
 
 import argparse
 import json
-import math
 import os
 import platform
 import time
@@ -64,6 +63,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _args import folder, number
 
 # jaxtraj sets XLA:CPU options at import; they take effect as it comes before any JAX computation
 import jaxtraj as jt
@@ -79,60 +79,24 @@ UNCONSTRAINED_CONE_DEG = 1e-3  # a cone that is never active: the unconstrained 
 REL_AGREEMENT = 1e-4  # quaternion vs Euler objectives, relative (issue 8)
 
 
-def _number(kind, low, high=None, *, above=False, finite=True):
-    """An argparse `type`: a `kind` (int or float) >= `low` (> with `above`), <= `high`, and
-    finite unless `finite=False`; anything else ends in argparse's one-line usage error
-    (exit 2) before any work, never in a traceback of the run."""
-    show = (lambda v: f"{v:,}") if kind is int else (lambda v: f"{v:g}")
-
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an int' if kind is int else 'a number'}; got {text!r}"
-            ) from None
-        ok = kind is int or not (math.isnan(value) or (finite and math.isinf(value)))
-        ok = ok and (value > low if above else value >= low) and (high is None or value <= high)
-        if not ok:
-            if kind is int and high is not None:
-                bound = f"in {show(low)}..{show(high)}"
-            else:
-                bound = f"{'>' if above else '>='} {show(low)}" + ("" if high is None else f" and <= {show(high)}")
-            finite_text = "finite and " if kind is float and finite and high is None else ""
-            raise argparse.ArgumentTypeError(f"must be {finite_text}{bound}; got {text}")
-        return value
-
-    return parse
-
-
-def _folder(text):
-    """An argparse `type`: a folder to write into (created if missing); not empty, not a file."""
-    if not text:
-        raise argparse.ArgumentTypeError("must not be empty")
-    if os.path.exists(text) and not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
-    return text
-
-
 def parse_args(argv=None):
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--segments", "-P", type=_number(int, 1, 1000), default=8, help="torque segments P (default 8)")
-    p.add_argument("--rk4-steps", type=_number(int, 1, 10_000), default=20, help="RK4 steps per segment (default 20)")
+    p.add_argument("--segments", "-P", type=number(int, 1, 1000), default=8, help="torque segments P (default 8)")
+    p.add_argument("--rk4-steps", type=number(int, 1, 10_000), default=20, help="RK4 steps per segment (default 20)")
     p.add_argument(
-        "--grid-factor", type=_number(int, 1, 1000), default=10, help="refinement of the cone check grid (default 10)"
+        "--grid-factor", type=number(int, 1, 1000), default=10, help="refinement of the cone check grid (default 10)"
     )
     p.add_argument(
         "--max-steps",
-        type=_number(int, 1, 1_000_000),
+        type=number(int, 1, 1_000_000),
         default=600,
         help="solver steps (integrations) per solve (default 600)",
     )
     p.add_argument("--solvers", nargs="+", choices=list(SOLVERS), default=list(SOLVERS), help="default: al sqp")
     p.add_argument("--representations", nargs="+", choices=list(REPS), default=list(REPS))
-    p.add_argument("--out", type=_folder, default=os.path.join("results", "attitude"), help="output folder")
+    p.add_argument("--out", type=folder, default=os.path.join("results", "attitude"), help="output folder")
     p.add_argument("--quick", action="store_true", help="smoke run: P = 4, RK4(10), 300 steps (overrides those flags)")
     args = p.parse_args(argv)
     if args.quick:

@@ -37,14 +37,13 @@ Run: `python examples/closed_loop.py [--out DIR] [--n 10000] [--seed 0]
 
 import argparse
 import json
-import math
-import os
 import pathlib
 import platform
 import time
 
 import jax
 import numpy as np
+from _args import folder, number
 
 import jaxtraj as jt
 from jaxtraj import feedback as fb
@@ -59,52 +58,16 @@ NAMES = ("radial velocity v_r", "radius r", "tangential velocity v_t")
 UNITS = ((V0_MS, "m/s"), (AU_KM, "km"), (V0_MS, "m/s"))
 
 
-def _number(kind, low, high=None, *, above=False, finite=True):
-    """An argparse `type`: a `kind` (int or float) >= `low` (> with `above`), <= `high`, and
-    finite unless `finite=False`; anything else ends in argparse's one-line usage error
-    (exit 2) before any work, never in a traceback of the run."""
-    show = (lambda v: f"{v:,}") if kind is int else (lambda v: f"{v:g}")
-
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an int' if kind is int else 'a number'}; got {text!r}"
-            ) from None
-        ok = kind is int or not (math.isnan(value) or (finite and math.isinf(value)))
-        ok = ok and (value > low if above else value >= low) and (high is None or value <= high)
-        if not ok:
-            if kind is int and high is not None:
-                bound = f"in {show(low)}..{show(high)}"
-            else:
-                bound = f"{'>' if above else '>='} {show(low)}" + ("" if high is None else f" and <= {show(high)}")
-            finite_text = "finite and " if kind is float and finite and high is None else ""
-            raise argparse.ArgumentTypeError(f"must be {finite_text}{bound}; got {text}")
-        return value
-
-    return parse
-
-
-def _folder(text):
-    """An argparse `type`: a folder to write into (created if missing); not empty, not a file."""
-    if not text:
-        raise argparse.ArgumentTypeError("must not be empty")
-    if os.path.exists(text) and not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
-    return text
-
-
 def _parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=_folder, default="results/closed_loop", help="output folder")
-    p.add_argument("--n", type=_number(int, 2, 1_000_000), default=10_000, help="Monte Carlo runs per loop (>= 2)")
-    p.add_argument("--seed", type=_number(int, 0, 2**63 - 1), default=0)
-    p.add_argument("--sigma-thrust", type=_number(float, 0.0), default=0.01, help="relative, 1 sigma")
-    p.add_argument("--sigma-pointing-deg", type=_number(float, 0.0), default=1.0, help="degrees, 1 sigma")
+    p.add_argument("--out", type=folder, default="results/closed_loop", help="output folder")
+    p.add_argument("--n", type=number(int, 2, 1_000_000), default=10_000, help="Monte Carlo runs per loop (>= 2)")
+    p.add_argument("--seed", type=number(int, 0, 2**63 - 1), default=0)
+    p.add_argument("--sigma-thrust", type=number(float, 0.0), default=0.01, help="relative, 1 sigma")
+    p.add_argument("--sigma-pointing-deg", type=number(float, 0.0), default=1.0, help="degrees, 1 sigma")
     p.add_argument(
         "--correlation-time",
-        type=_number(float, 0.0, finite=False),
+        type=number(float, 0.0, finite=False),
         default=0.0,
         help="of the execution errors (0: white per sample; inf: a bias per run)",
     )

@@ -23,8 +23,6 @@ most of it compiling). Writes `design_loop.md` and `design_loop.png` to DIR.
 """
 
 import argparse
-import math
-import os
 import pathlib
 import time
 
@@ -32,6 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _args import folder, number
 
 import jaxtraj as jt
 from jaxtraj.plot import pyplot
@@ -79,49 +78,13 @@ def newton(f, args, start, target, tol=1e-10, max_iter=12):
     return args, start, rows
 
 
-def _number(kind, low, high=None, *, above=False, finite=True):
-    """An argparse `type`: a `kind` (int or float) >= `low` (> with `above`), <= `high`, and
-    finite unless `finite=False`; anything else ends in argparse's one-line usage error
-    (exit 2) before any work, never in a traceback of the run."""
-    show = (lambda v: f"{v:,}") if kind is int else (lambda v: f"{v:g}")
-
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an int' if kind is int else 'a number'}; got {text!r}"
-            ) from None
-        ok = kind is int or not (math.isnan(value) or (finite and math.isinf(value)))
-        ok = ok and (value > low if above else value >= low) and (high is None or value <= high)
-        if not ok:
-            if kind is int and high is not None:
-                bound = f"in {show(low)}..{show(high)}"
-            else:
-                bound = f"{'>' if above else '>='} {show(low)}" + ("" if high is None else f" and <= {show(high)}")
-            finite_text = "finite and " if kind is float and finite and high is None else ""
-            raise argparse.ArgumentTypeError(f"must be {finite_text}{bound}; got {text}")
-        return value
-
-    return parse
-
-
-def _folder(text):
-    """An argparse `type`: a folder to write into (created if missing); not empty, not a file."""
-    if not text:
-        raise argparse.ArgumentTypeError("must not be empty")
-    if os.path.exists(text) and not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
-    return text
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--days", type=_number(float, 0.0, above=True), default=365.0, help="the required transfer time [days]"
+        "--days", type=number(float, 0.0, above=True), default=365.0, help="the required transfer time [days]"
     )
-    parser.add_argument("--grid", type=_number(int, 1, 1000), default=7, help="sails in the sensitivity table")
-    parser.add_argument("--out", type=_folder, default="results/design_loop")
+    parser.add_argument("--grid", type=number(int, 1, 1000), default=7, help="sails in the sensitivity table")
+    parser.add_argument("--out", type=folder, default="results/design_loop")
     args_ = parser.parse_args(argv)
     out = pathlib.Path(args_.out)
     out.mkdir(parents=True, exist_ok=True)

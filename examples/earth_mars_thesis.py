@@ -8,25 +8,16 @@ references; e.g. `results 4` solves case 4 alone); the same as `jaxtraj reproduc
 """
 
 import argparse
-import os
+
+from _args import folder
 
 import jaxtraj as jt
 from jaxtraj.reproduce import main
 
-
-def _folder(text):
-    """An argparse `type`: a folder to write into (created if missing); not empty, not a file."""
-    if not text:
-        raise argparse.ArgumentTypeError("must not be empty")
-    if os.path.exists(text) and not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
-    return text
-
-
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "outdir", nargs="?", type=_folder, default="results", help="where the table and figure go (results)"
+        "outdir", nargs="?", type=folder, default="results", help="where the table and figure go (results)"
     )
     parser.add_argument("cases", nargs="*", type=int, choices=range(1, 8), help="case numbers (default: all seven)")
     args = parser.parse_args()

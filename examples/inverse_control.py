@@ -15,7 +15,6 @@ and the recovered (c, q) next to the truth.
 """
 
 import argparse
-import math
 import time
 
 import equinox as eqx
@@ -23,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from _args import number
 
 import jaxtraj as jt
 
@@ -57,37 +57,10 @@ def positions(prob, ctrl, sim, args, start):
     return jnp.interp(SAMPLES, traj.t, traj.x[:, 0]), (sol.params, sol.status)
 
 
-def _number(kind, low, high=None, *, above=False, finite=True):
-    """An argparse `type`: a `kind` (int or float) >= `low` (> with `above`), <= `high`, and
-    finite unless `finite=False`; anything else ends in argparse's one-line usage error
-    (exit 2) before any work, never in a traceback of the run."""
-    show = (lambda v: f"{v:,}") if kind is int else (lambda v: f"{v:g}")
-
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an int' if kind is int else 'a number'}; got {text!r}"
-            ) from None
-        ok = kind is int or not (math.isnan(value) or (finite and math.isinf(value)))
-        ok = ok and (value > low if above else value >= low) and (high is None or value <= high)
-        if not ok:
-            if kind is int and high is not None:
-                bound = f"in {show(low)}..{show(high)}"
-            else:
-                bound = f"{'>' if above else '>='} {show(low)}" + ("" if high is None else f" and <= {show(high)}")
-            finite_text = "finite and " if kind is float and finite and high is None else ""
-            raise argparse.ArgumentTypeError(f"must be {finite_text}{bound}; got {text}")
-        return value
-
-    return parse
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=_number(int, 1, 1_000_000), default=300, help="gradient steps")
-    parser.add_argument("--noise", type=_number(float, 0.0), default=0.0, help="std of the recording noise")
+    parser.add_argument("--steps", type=number(int, 1, 1_000_000), default=300, help="gradient steps")
+    parser.add_argument("--noise", type=number(float, 0.0), default=0.0, help="std of the recording noise")
     opts = parser.parse_args(argv)
     t0 = time.perf_counter()
     prob, ctrl, sim, start = setup()

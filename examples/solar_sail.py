@@ -55,6 +55,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _args import folder, number
 
 # jaxtraj sets XLA:CPU options at import; they take effect as it comes before any JAX computation
 import jaxtraj as jt
@@ -91,42 +92,6 @@ MISS_TOL = 1e-6  # `ss.diagnose`'s default: a terminal miss above it is no trans
 COLLAPSED = 1e-8  # a segment shorter than this [time units] has collapsed
 
 
-def _number(kind, low, high=None, *, above=False, finite=True):
-    """An argparse `type`: a `kind` (int or float) >= `low` (> with `above`), <= `high`, and
-    finite unless `finite=False`; anything else ends in argparse's one-line usage error
-    (exit 2) before any work, never in a traceback of the run."""
-    show = (lambda v: f"{v:,}") if kind is int else (lambda v: f"{v:g}")
-
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an int' if kind is int else 'a number'}; got {text!r}"
-            ) from None
-        ok = kind is int or not (math.isnan(value) or (finite and math.isinf(value)))
-        ok = ok and (value > low if above else value >= low) and (high is None or value <= high)
-        if not ok:
-            if kind is int and high is not None:
-                bound = f"in {show(low)}..{show(high)}"
-            else:
-                bound = f"{'>' if above else '>='} {show(low)}" + ("" if high is None else f" and <= {show(high)}")
-            finite_text = "finite and " if kind is float and finite and high is None else ""
-            raise argparse.ArgumentTypeError(f"must be {finite_text}{bound}; got {text}")
-        return value
-
-    return parse
-
-
-def _folder(text):
-    """An argparse `type`: a folder to write into (created if missing); not empty, not a file."""
-    if not text:
-        raise argparse.ArgumentTypeError("must not be empty")
-    if os.path.exists(text) and not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
-    return text
-
-
 def parse_args(argv=None):
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
@@ -135,45 +100,45 @@ def parse_args(argv=None):
     p.add_argument(
         "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="methods to run (default: all)"
     )
-    p.add_argument("--segments", "-P", type=_number(int, 1, 1000), default=10, help="spline segments P (default 10)")
+    p.add_argument("--segments", "-P", type=number(int, 1, 1000), default=10, help="spline segments P (default 10)")
     p.add_argument("--degree", "-p", type=int, default=1, choices=(0, 1, 2, 3), help="spline degree p (default 1)")
     p.add_argument(
         "--rk4-steps",
-        type=_number(int, 1, 10_000),
+        type=number(int, 1, 10_000),
         default=100,
         help="RK4 steps per segment, every method (default 100)",
     )
-    p.add_argument("--seeds", type=_number(int, 1, 1000), default=5, help="PRNG seeds per metaheuristic (default 5)")
+    p.add_argument("--seeds", type=number(int, 1, 1000), default=5, help="PRNG seeds per metaheuristic (default 5)")
     p.add_argument(
         "--population",
-        type=_number(int, 3, 100_000),
+        type=number(int, 3, 100_000),
         default=30,
         help="population size (default 30; >= 3: GreyWolf and Dragonfly need three members)",
     )
-    p.add_argument("--generations", type=_number(int, 1, 1_000_000), default=200, help="generations (default 200)")
+    p.add_argument("--generations", type=number(int, 1, 1_000_000), default=200, help="generations (default 200)")
     p.add_argument(
         "--penalty-weight",
-        type=_number(float, 0.0, above=True),
+        type=number(float, 0.0, above=True),
         default=ss.DEFAULT_WEIGHTS[1],
         help="lambda_2 = lambda_3 = lambda_4 of the penalty (lambda_1 = 1 per day; default 1e10)",
     )
     p.add_argument(
         "--pitches",
-        type=_number(float, 0.0, 90.0),
+        type=number(float, 0.0, 90.0),
         nargs="+",
         default=[20.0, 35.0, 50.0],
         help="constant starting pitches [deg] in 0..90, sign set by the target (default 20 35 50)",
     )
     p.add_argument(
         "--tf-factors",
-        type=_number(float, 0.0, 2.0, above=True),
+        type=number(float, 0.0, 2.0, above=True),
         nargs="+",
         default=[0.8, 1.0, 1.3],
         help="starting tf as multiples of TF_BOX[target] / 2, in (0, 2]: inside the box (default 0.8 1.0 1.3)",
     )
     p.add_argument(
         "--max-steps",
-        type=_number(int, 1, 1_000_000),
+        type=number(int, 1, 1_000_000),
         default=600,
         help="candidate integrations per start (default 600)",
     )
@@ -184,9 +149,9 @@ def parse_args(argv=None):
         help="KalmanSQP's Hessian, with the line search (default bfgs; the runs recorded in docs/results.md)",
     )
     p.add_argument(
-        "--slsqp-maxiter", type=_number(int, 1, 1_000_000), default=150, help="SLSQP iteration limit (default 150)"
+        "--slsqp-maxiter", type=number(int, 1, 1_000_000), default=150, help="SLSQP iteration limit (default 150)"
     )
-    p.add_argument("--out", type=_folder, default=os.path.join("results", "solar_sail"), help="output folder")
+    p.add_argument("--out", type=folder, default=os.path.join("results", "solar_sail"), help="output folder")
     p.add_argument(
         "--quick",
         action="store_true",

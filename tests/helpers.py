@@ -85,11 +85,15 @@ def counting_problem(prob):
 
 def load_script(folder, name):
     """Import `<folder>/<name>.py` (`examples`, `benchmarks`: scripts, not a package) as a
-    module."""
+    module, with the folder on `sys.path` as when the script runs (`examples/_args.py`)."""
     import importlib.util
     import os
+    import sys
 
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), folder, f"{name}.py")
+    where = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), folder)
+    if where not in sys.path:
+        sys.path.append(where)
+    path = os.path.join(where, f"{name}.py")
     spec = importlib.util.spec_from_file_location(f"{name}_{folder}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
