@@ -31,6 +31,7 @@ from ._checks import check_settings
 from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
+    curvature_error,
     inequality_rows,
     kkt_residual,
     least_squares_multipliers,
@@ -436,13 +437,19 @@ class KalmanSQP(AbstractSolver):
         return multipliers(A, ev.G_a + B @ d)[:n]
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
-        """Second-order correction of a full step d: the smallest step (metric B) with
-        H d_soc = -E(a + d), H at the current point, so that d + d_soc absorbs the
-        constraints' curvature along d (Nocedal & Wright sec. 15.4); knot order kept."""
+        """Second-order correction of a step d: the smallest step (metric B) with
+        H d_soc = -(E(a + d) - (E + H d)), H at the current point, so that d + d_soc absorbs
+        the constraints' curvature along d (Nocedal & Wright sec. 15.4); knot order kept.
+        The target is the linear model's error, not E(a + d) itself: the two agree for a step
+        that meets the linearized constraints, but a step cut short (a radius, a box, a normal
+        step cut to the trust region) leaves part of E by design, and a correction to
+        E(a + d) = 0 took the rest of the feasibility step without the cut, 100x longer than
+        d (orbit raising under the line search STALLED: docs/history.md, session 40)."""
         P = _covariance(B)
         r = self.r_rel * jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H) + 1e-300
-        dc, _, _ = sequential_update(jnp.zeros_like(d), P, ev.H, -E_cand, r)
-        dc, _, _ = sequential_update(dc, P, ev.H, -E_cand, r)
+        err = curvature_error(ev, E_cand, d)
+        dc, _, _ = sequential_update(jnp.zeros_like(d), P, ev.H, -err, r)
+        dc, _, _ = sequential_update(dc, P, ev.H, -err, r)
         total, _ = keep_knots_ordered(d + dc, P, knots, dknots, self.a_t, collapse=self.path_active)
         return jnp.where(jnp.all(jnp.isfinite(total)), total - d, 0.0)
 

@@ -142,6 +142,12 @@ def merit(ev, lam, mu):
     return merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
 
 
+def curvature_error(ev, E_cand, d):
+    """E(a + d) - (E + H d): what the constraints' linear model at `ev` missed along the step
+    d, the target of a second-order correction (`KalmanSQP.correction`)."""
+    return E_cand - (ev.E + ev.H @ d)
+
+
 def is_feasible(ev, ctol):
     """max |E| <= `ctol` and every inequality row <= `ctol` (SUCCESS's feasibility)."""
     rows = inequality_rows(ev)

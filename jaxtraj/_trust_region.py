@@ -26,6 +26,7 @@ from ._driver import only_where
 from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
+    curvature_error,
     inequality_rows,
     is_feasible,
     kkt_outcome,
@@ -413,7 +414,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     if with_rows:
         d_soc = sqp.correction(ev, B, cand.E, knots, dknots, d)
     else:
-        d_soc, _ = min_norm_step(ev.H, -cand.E)
+        d_soc, _ = min_norm_step(ev.H, -curvature_error(ev, cand.E, d))
     d_norm = jnp.where(accept, size(total), size(d))
     # on the boundary: |d| >= 0.8 radius, with a margin for round-off: a normal step cut to
     # the default zeta x radius and taken alone (no tangential part, or feasibility first)
