@@ -290,7 +290,7 @@ def _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, keep):
             zc = C_a[p] @ z
             take = valid[j] & (zc > dependence * prior_var[p]) & (count < rank_left)
             PW = jnp.where(take, PW - jnp.outer(z, z) / jnp.where(take, zc + r[p], 1.0), PW)
-            return (PW, count + take), take
+            return (PW, count + take.astype(count.dtype)), take
 
         (PW, _), taken = lax.scan(add, (P, 0), slots)
         slot_row = jnp.where(taken, idx, -1)

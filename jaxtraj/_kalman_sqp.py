@@ -303,7 +303,7 @@ class KalmanSQP(AbstractSolver):
             C_s, C_as = C[:n_soft], C_a[:n_soft]
             softened = C_s > self.ctol
             noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var[:n_soft], 0.0)))
-            noise = noise / jnp.maximum(m + jnp.sum(softened), 1) + 1e-300
+            noise = noise / jnp.maximum(m + jnp.sum(softened), 1).astype(noise.dtype) + 1e-300
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`
             # and the final step confirms it (a row outside the working set past `ctol` there:

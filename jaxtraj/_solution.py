@@ -55,7 +55,8 @@ class History(eqx.Module):
         the end is dropped, and a zero-length history (no history kept) stays as it is."""
         if self.objective.shape[-1] == 0:
             return self
-        put = lambda h, v: h.at[i].set(v, mode="drop")
+        # (a value in the record's dtype: a detail such as an int32 phase goes into float64)
+        put = lambda h, v: h.at[i].set(jnp.asarray(v).astype(h.dtype), mode="drop")
         return History(
             **{k: put(getattr(self, k), v) for k, v in values.items()},
             details={k: put(self.details[k], v) for k, v in (details or {}).items()},

@@ -124,7 +124,7 @@ def convexify_blockwise(W, A, min_curvature, negligible=0.0):
     _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
     in_range = s > 1e-10 * jnp.max(s, initial=0.0)
     rank = jnp.sum(in_range)
-    PY = (Vt.T * in_range[None, :]) @ Vt
+    PY = (Vt.T * in_range[None, :].astype(Vt.dtype)) @ Vt
     PZ = jnp.eye(p, dtype=W.dtype) - PY
     # no curvature at all: |W| <= `negligible` (0, or the round-off of W's terms)
     W = jnp.where(jnp.linalg.norm(W) <= negligible, 0.0, W)
@@ -135,7 +135,7 @@ def convexify_blockwise(W, A, min_curvature, negligible=0.0):
         positive, and its inverse there."""
         w, U = eigh_within(M, P)
         inside = jnp.arange(p) < n_in
-        U = U * inside[None, :]
+        U = U * inside[None, :].astype(U.dtype)
         w = jnp.abs(w)
         top = jnp.maximum(jnp.max(jnp.where(inside, w, 0.0)), scale)
         # no curvature at all (W = 0; within P eigh leaves round-off): the identity there
