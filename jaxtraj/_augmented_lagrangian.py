@@ -506,7 +506,10 @@ class AugmentedLagrangian(AbstractSolver):
             s_, y_ = z - lb.params, g_z - lb.updates
             bad_pair = (lb.count > 0) & ~(s_ @ y_ > 1e-12 * jnp.linalg.norm(s_) * jnp.linalg.norm(y_))
             prior = jax.tree.map(lambda n, o: jnp.where(bad_pair, n, o), self._init_opt(z), state.opt_state)
-            direction, dir_state = opt.update(g_z, prior[0], z)
+            # (optax's L-BFGS adds its int32 memory index to an int64 arange under x64: standard
+            # promotion for that call, whatever the user set)
+            with jax.numpy_dtype_promotion("standard"):
+                direction, dir_state = opt.update(g_z, prior[0], z)
             # the line search's largest step keeps every parameter's change <= max_step
             reach = jnp.max(jnp.abs(metric.to_a(direction) - metric.center))
             cap = self.max_step / jnp.where(reach > 0, reach, 1.0)
@@ -516,7 +519,9 @@ class AugmentedLagrangian(AbstractSolver):
             opt_state = (dir_state, ls_state)
             trials = cast(Any, ls_state).info.num_linesearch_steps.astype(jnp.int32)  # (as `lb` above)
         else:
-            updates, opt_state = opt.update(g_z, state.opt_state, z)
+            # (optax's Adam raises a float decay to its int32 step count: standard promotion)
+            with jax.numpy_dtype_promotion("standard"):
+                updates, opt_state = opt.update(g_z, state.opt_state, z)
             trials = jnp.array(0, jnp.int32)
         # (optax's updates have the parameters' structure: here one array)
         cand_a = box.project(metric.to_a(z + cast(jax.Array, updates)))
