@@ -206,7 +206,7 @@ def text_start():
 
 
 def complex_dynamics():
-    return jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[0]]) * (1 + 1j), jnp.zeros(2),
+    return jt.Problem(lambda t, x, u, args: jnp.stack([x[1], u[0]]).astype(jnp.complex128) * (1 + 1j), jnp.zeros(2),
                       lambda tf, xf, args: xf - jnp.array([1.0, 0.0]), ("x", "v"), num_controls=1)
 
 

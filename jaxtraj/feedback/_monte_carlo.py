@@ -287,7 +287,7 @@ def monte_carlo(
 def _masked_stats(values, finite, levels):
     """Mean, unbiased covariance and percentiles over the leading axis of `values` `(R, d)`,
     leaving out the rows where `finite` is False."""
-    count = jnp.sum(finite)
+    count = jnp.sum(finite).astype(values.dtype)  # (a float: it divides the values)
     keep = finite[:, None]
     mean = jnp.sum(jnp.where(keep, values, 0.0), axis=0) / count
     d = jnp.where(keep, values - mean[None], 0.0)
