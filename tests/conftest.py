@@ -12,6 +12,9 @@ import jaxtraj
 jaxtraj.configure_cpu()
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# Strict dtype promotion (issue 52): an implicit array-array dtype mix (float64 * bool,
+# float64 + int32, float32 with float64) is an error, so the library casts explicitly.
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 # A persistent compilation cache private to this test process (one per xdist worker: JAX's
 # file cache does not guard a reader against another process's half-written entry). The
