@@ -15,9 +15,20 @@ The result equals the batch formula K = P H^T (H P H^T + R)^-1 for any processin
 
 import jax.numpy as jnp
 from jax import lax
+from jaxtyping import Array, Bool, Float
+
+# Shapes (jaxtyping, documentation only): p parameters, m equality rows, q inequality rows,
+# g knot gaps.
 
 
-def sequential_update(da, P, H, z, r, active=None):
+def sequential_update(
+    da: Float[Array, " p"],
+    P: Float[Array, "p p"],
+    H: Float[Array, "m p"],
+    z: Float[Array, " m"],
+    r: Float[Array, " m"],
+    active: Bool[Array, " m"] | None = None,
+) -> tuple[Float[Array, " p"], Float[Array, "p p"], Float[Array, " m"]]:
     """Absorb the rows of `H` (shape `(m, p)`) one at a time.
 
     **Arguments:**
@@ -51,7 +62,15 @@ def sequential_update(da, P, H, z, r, active=None):
     return da, P, s
 
 
-def keep_knots_ordered(da, P, knots, dknots, a_t, keep=None, collapse=0.0):
+def keep_knots_ordered(
+    da: Float[Array, " p"],
+    P: Float[Array, "p p"],
+    knots: Float[Array, " g+1"],
+    dknots: Float[Array, "g+1 p"],
+    a_t,
+    keep=None,
+    collapse=0.0,
+) -> tuple[Float[Array, " p"], Float[Array, "p p"]]:
     """Seed 000 appendix C: keep the segment boundaries in order after the increment `da`.
 
     Each gap g_i = t_{i+1} - t_i that `da` would close (g_i + dg_i/da . da <= 0) becomes one
@@ -137,7 +156,20 @@ def observe_worst(d, P, C, C_a, r, prior_var, dependence, threshold, active, see
     return d, P, active
 
 
-def dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities=None, warm=None):
+def dual_active_set(
+    d: Float[Array, " p"],
+    P: Float[Array, "p p"],
+    H: Float[Array, "m p"],
+    C: Float[Array, " q"],
+    C_a: Float[Array, "q p"],
+    r: Float[Array, " q"],
+    prior_var: Float[Array, " q"],
+    dependence,
+    threshold,
+    max_iter: int,
+    num_equalities=None,
+    warm: Bool[Array, " q"] | None = None,
+) -> tuple[Bool[Array, " q"], Float[Array, " q"], Float[Array, " q"]]:
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
 
@@ -317,7 +349,19 @@ def _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, keep):
 
 
 def inequality_step(
-    d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, equalities, num_equalities=None, warm=None
+    d: Float[Array, " p"],
+    P: Float[Array, "p p"],
+    H: Float[Array, "m p"],
+    C: Float[Array, " q"],
+    C_a: Float[Array, "q p"],
+    r: Float[Array, " q"],
+    prior_var: Float[Array, " q"],
+    dependence,
+    threshold,
+    max_iter: int,
+    equalities: tuple[Float[Array, "p p"], Float[Array, " m"], Float[Array, " m"]],
+    num_equalities=None,
+    warm: Bool[Array, " q"] | None = None,
 ):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
@@ -345,14 +389,16 @@ def inequality_step(
     return d1, P1, W, u, excess
 
 
-def batch_update(da, P, H, z, r):
+def batch_update(
+    da: Float[Array, " p"], P: Float[Array, "p p"], H: Float[Array, "m p"], z: Float[Array, " m"], r: Float[Array, " m"]
+) -> tuple[Float[Array, " p"], Float[Array, "p p"]]:
     """The same estimate by the batch formula (for tests and reference only)."""
     S = H @ P @ H.T + jnp.diag(r)
     K = jnp.linalg.solve(S, H @ P).T
     return da + K @ (z - H @ da), P - K @ H @ P
 
 
-def projection_matrix(H):
+def projection_matrix(H: Float[Array, "m p"]) -> Float[Array, "p p"]:
     """Rosen's projection V = I - H^T (H H^T)^-1 H onto the null space of H (rows independent)."""
     p = H.shape[1]
     return jnp.eye(p, dtype=H.dtype) - H.T @ jnp.linalg.solve(H @ H.T, H)

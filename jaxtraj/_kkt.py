@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jaxtyping import Array, Bool, Float
 
 from ._bounds import knot_gap_rows
 
@@ -66,7 +67,7 @@ def active_rows(ev, tol):
     return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
-def multipliers(rows, g):
+def multipliers(rows: Float[Array, "k p"], g: Float[Array, " p"]) -> Float[Array, " k"]:
     """The multipliers lambda that minimize |g + rows^T lambda| (least squares, robust to
     dependent rows): every solver's multiplier estimate is this one solve."""
     return jnp.linalg.lstsq(rows.T, -g)[0]
@@ -118,7 +119,14 @@ def without_scale(d, a, free):
     return jnp.where(free, d - (d @ a) / jnp.where(free, a @ a, 1.0) * a, d)
 
 
-def merit_value(G, E, C, lam, mu, on=None):
+def merit_value(
+    G: Float[Array, ""],
+    E: Float[Array, " m"],
+    C: Float[Array, " q"] | None,
+    lam: Float[Array, " m+q"],
+    mu,
+    on: Bool[Array, " q"] | None = None,
+) -> Float[Array, ""]:
     """The augmented-Lagrangian merit of both KalmanSQP globalizations: G + lambda^T E + mu/2
     |E|^2 + sum_j psi(C_j, nu_j) with the PHR inequality term psi = (max(0, nu + mu C)^2 -
     nu^2) / (2 mu) (= nu C + mu/2 C^2 where nu + mu C > 0).
@@ -142,7 +150,7 @@ def merit(ev, lam, mu):
     return merit_value(ev.G, ev.E, None if rows is None else rows[0], lam, mu)
 
 
-def curvature_error(ev, E_cand, d):
+def curvature_error(ev, E_cand: Float[Array, " m"], d: Float[Array, " p"]) -> Float[Array, " m"]:
     """E(a + d) - (E + H d): what the constraints' linear model at `ev` missed along the step
     d, the target of a second-order correction (`KalmanSQP.correction`)."""
     return E_cand - (ev.E + ev.H @ d)
@@ -250,7 +258,9 @@ def locally_infeasible(ev, tol, rtol):
     return (scale > 0.0) & (infeasibility_stationarity(ev, tol) <= rtol * scale)
 
 
-def signed_multipliers(g, H, C_a, keep, exact=True):
+def signed_multipliers(
+    g: Float[Array, " p"], H: Float[Array, "m p"], C_a: Float[Array, "q p"], keep: Bool[Array, " q"], exact=True
+) -> tuple[Float[Array, ""], Float[Array, " m+q"]]:
     """`(residual, [lambda; nu])`: min |g + H^T lambda + C_a^T nu| over free lambda and
     nu >= 0 (nu = 0 off `keep`), and the multipliers that give it.
 
@@ -329,7 +339,7 @@ def signed_multipliers(g, H, C_a, keep, exact=True):
     return jnp.linalg.norm(g + A @ lam), lam
 
 
-def projected_gradient(G_a, H):
+def projected_gradient(G_a: Float[Array, " p"], H: Float[Array, "m p"]) -> Float[Array, ""]:
     """|V G_a|, V = I - H^T (H H^T)^-1 H [3.62] (least squares, robust to dependent rows)."""
     return jnp.linalg.norm(G_a + H.T @ multipliers(H, G_a))
 

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import Array, Float
 
 from ._bounds import bound_rows
 from ._checks import check_inputs
@@ -274,21 +275,23 @@ class Evaluation(eqx.Module):
     terminal inequalities D = D(tf, x(tf)) (r,) with D_a = dD/da (r, np), for declared control
     bounds that need them the parameter rows V <= 0 with V_a (`_bounds.py`); None otherwise."""
 
-    xf: jax.Array
-    xf_a: jax.Array
-    tf: jax.Array
-    G: jax.Array
-    G_a: jax.Array
-    E: jax.Array
-    H: jax.Array
+    # (shapes of one evaluation: n states, p parameters, m equalities, N grid points, q path
+    # rows, r terminal inequalities, v bound rows; a batch adds leading axes)
+    xf: Float[Array, " n"]
+    xf_a: Float[Array, "n p"]
+    tf: Float[Array, ""]
+    G: Float[Array, ""]
+    G_a: Float[Array, " p"]
+    E: Float[Array, " m"]
+    H: Float[Array, "m p"]
     status: Status
-    C: jax.Array | None = None
-    C_a: jax.Array | None = None
-    path_t: jax.Array | None = None
-    D: jax.Array | None = None
-    D_a: jax.Array | None = None
-    V: jax.Array | None = None
-    V_a: jax.Array | None = None
+    C: Float[Array, "N q"] | None = None
+    C_a: Float[Array, "N q p"] | None = None
+    path_t: Float[Array, " N"] | None = None
+    D: Float[Array, " r"] | None = None
+    D_a: Float[Array, "r p"] | None = None
+    V: Float[Array, " v"] | None = None
+    V_a: Float[Array, "v p"] | None = None
 
 
 def path_values(problem, control, a, simulator):
