@@ -17,13 +17,20 @@ With `--problem NAME` (a `jt.problems.classic` gallery entry, e.g. `bryson-denha
 constraints, bounds, running costs) the same columns for that problem from its naive start with
 the gallery's RK4(40), without a CasADi row (its NLP is written out for Earth-Mars only).
 
+`--size` (issue 53): how the default's first call grows with the problem, the free-flying
+robot (4 bounded controls, RK4(10)) on 5-30 linear pieces and a chain of bounded integrators
+x_i' = u_i (|u_i| <= 1, reach x_i(1) = 1, least energy, RK4(10)) with 1-8 controls on 10
+pieces: the lowered program's StableHLO lines and the trace + lower and XLA compile
+seconds, with the growth per added segment and per added control (`--no-compile`: lines and
+trace time only).
+
 `--pieces` adds the default solver's kernels compiled apart (evaluation, exact Hessian, QP
 step): what each costs of the whole program. `--cache` runs the default solver's first call in
 three new processes that share one empty `jt.enable_compilation_cache` folder: a script run
 again.
 
 Run: `python benchmarks/first_answer.py [--case 4 | --problem bryson-denham] [--repeats 3]
-[--pieces] [--cache]`.
+[--pieces] [--cache]` or `python benchmarks/first_answer.py --size [--no-compile]`.
 """
 
 import argparse
@@ -75,6 +82,49 @@ def first_call(solver, problem, control, a0, simulator):
     jax.block_until_ready(sol.params)
     t3 = time.perf_counter()
     return t1 - t0, t2 - t1, t3 - t2, len(lowered.as_text().splitlines()), sol
+
+
+def _integrators(m):
+    """m bounded integrators x_i' = u_i, |u_i| <= 1, x_i(1) = 1, min 1/2 int |u|^2: the
+    control count of the size study, on 10 linear pieces."""
+    problem = jt.Problem(
+        lambda t, x, u, args: u, np.zeros(m), lambda tf, xf, args: xf - 1.0, tuple(f"x{i}(1) = 1" for i in range(m)),
+        num_controls=m, running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+        control_lower=[-1.0] * m, control_upper=[1.0] * m, name=f"integrators-{m}",
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(10, channels=m))
+    return problem, control, np.zeros(control.num_params)
+
+
+def size_study(compile_too):
+    """The default's first call against the segment count (free-flying robot) and the control
+    count (bounded integrators): HLO lines, trace + lower, XLA compile, and the growth per
+    added segment / control between the smallest and the largest size."""
+    solver, simulator = jt.KalmanSQP(), jt.RK4(10)
+    robot = jt.problems.classic.free_flying_robot
+    rows = [("segments", k, *(lambda e: (e.problem, e.control, e.start))(robot(k))) for k in (5, 10, 20, 30)]
+    rows += [("controls", m, *_integrators(m)) for m in (1, 2, 4, 8)]
+    print(
+        "| study | size | parameters | HLO lines | trace + lower (s) | XLA compile (s) |\n|---|---:|---:|---:|---:|---:|"
+    )
+    results = {}
+    for study, size, problem, control, a0 in rows:
+        jax.clear_caches()
+        t0 = time.perf_counter()
+        lowered = run.lower(solver, problem, control, np.asarray(a0), simulator, MAX_STEPS, 0)
+        t1 = time.perf_counter()
+        comp = np.nan
+        if compile_too:
+            lowered.compile()
+            comp = time.perf_counter() - t1
+        lines = len(lowered.as_text().splitlines())
+        results.setdefault(study, []).append((size, lines, t1 - t0, comp))
+        print(f"| {study} | {size} | {np.asarray(a0).size} | {lines} | {t1 - t0:.2f} | {comp:.2f} |", flush=True)
+    print("\n| per added | HLO lines | trace + lower (s) | XLA compile (s) |\n|---|---:|---:|---:|")
+    for study, r in results.items():
+        (s0, l0, t0, c0), (s1, l1, t1, c1) = r[0], r[-1]
+        n = s1 - s0
+        print(f"| {study[:-1]} | {(l1 - l0) / n:.1f} | {(t1 - t0) / n:.3f} | {(c1 - c0) / n:.3f} |")
 
 
 def pieces(problem, control, a0, simulator):
@@ -204,7 +254,17 @@ def main():
     parser.add_argument(
         "--cache", action="store_true", help="also the default's first call in new processes with a compilation cache"
     )
+    parser.add_argument("--size", action="store_true", help="the first call against segments and controls (issue 53)")
+    parser.add_argument("--no-compile", action="store_true", help="with --size: HLO lines and trace time only")
     args = parser.parse_args()
+    if args.size:
+        print(
+            f"# size study, the default solver, RK4(10); {platform.processor() or platform.machine()}, "
+            f"{os.cpu_count()} cores, jax {jax.__version__}; command: python {' '.join(sys.argv)}; "
+            f"{time.strftime('%Y-%m-%d')}\n"
+        )
+        size_study(not args.no_compile)
+        return
     if args.problem:
         entry = jt.problems.classic.get(args.problem)
         problem, control, a0, simulator = entry.problem, entry.control, entry.start, jt.RK4(40)
