@@ -424,7 +424,11 @@ class KalmanSQP(AbstractSolver):
         segment is held by its gap (a positive multiplier, the objective's pull on the knot):
         left out of the solve, that pull goes into the multipliers of E, and the merit's
         minimum with a capped penalty lies a violation of ~|delta lambda| / mu away from the
-        optimum (docs/history.md, session 39)."""
+        optimum (docs/history.md, session 39). Row combinations within sqrt(eps) of dependent
+        (relative singular values) carry no multiplier: at a start at rest, E's columns of the
+        switch times and tf are 0, and after a perturbation eps they are ~eps: the residual
+        along them, which the QP's box and knot rows leave, went into E's multipliers as
+        ~1/eps (1e12 from a 1e-12 perturbation, 1.2 without; docs/history.md, session 40)."""
         rows = inequality_rows(ev)
         A = (
             ev.H
@@ -434,7 +438,7 @@ class KalmanSQP(AbstractSolver):
         n = A.shape[0]
         if held is not None:
             A = jnp.concatenate([A, held])
-        return multipliers(A, ev.G_a + B @ d)[:n]
+        return multipliers(A, ev.G_a + B @ d, rcond=jnp.sqrt(jnp.finfo(d.dtype).eps))[:n]
 
     def correction(self, ev: Evaluation, B, E_cand, knots, dknots, d):
         """Second-order correction of a step d: the smallest step (metric B) with

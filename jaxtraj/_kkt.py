@@ -67,10 +67,11 @@ def active_rows(ev, tol):
     return jnp.concatenate([ev.H, jnp.where((C >= -tol)[:, None], C_a, 0.0)])
 
 
-def multipliers(rows: Float[Array, "k p"], g: Float[Array, " p"]) -> Float[Array, " k"]:
+def multipliers(rows: Float[Array, "k p"], g: Float[Array, " p"], rcond=None) -> Float[Array, " k"]:
     """The multipliers lambda that minimize |g + rows^T lambda| (least squares, robust to
-    dependent rows): every solver's multiplier estimate is this one solve."""
-    return jnp.linalg.lstsq(rows.T, -g)[0]
+    dependent rows): every solver's multiplier estimate is this one solve. `rcond`: singular
+    values of `rows` below it relative to the largest count as zero (default: round-off)."""
+    return jnp.linalg.lstsq(rows.T, -g, rcond=rcond)[0]
 
 
 def least_squares_multipliers(ev, path_active):
