@@ -14,6 +14,8 @@ list of them, our extensions (held knot gaps, path constraints) and the converge
 docs/solvers/kalman-search.md (the algorithm, its history and measurements).
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -69,6 +71,11 @@ def _largest_alpha(ok_of_alpha, fallback):
     alphas = jnp.asarray(_ALPHAS)
     ok = jax.vmap(ok_of_alpha)(alphas)
     return jnp.where(jnp.any(ok), alphas[jnp.argmax(ok)], fallback)
+
+
+def _count(value, least):
+    """An int in least..2**31 - 1 (a count the compiled loop holds in int32)."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool) and least <= value < 2**31
 
 
 class KalmanSearch(AbstractSolver):
@@ -132,19 +139,28 @@ class KalmanSearch(AbstractSolver):
     method: str = "forward"
 
     def __check_init__(self):
+        inf = math.inf  # (every setting finite: e_a or gtol = inf was SUCCESS at any point)
         checks = {
-            "rho": lambda: self.rho > 0,
-            "beta": lambda: self.beta > 0,
-            "beta_p": lambda: self.beta_p >= 1,
-            "beta_0": lambda: self.beta_0 >= self.beta,
-            "beta_p0": lambda: self.beta_p0 >= self.beta_p,
-            "e_m": lambda: self.e_m > 0,
-            "e_a": lambda: self.e_a > 0,
-            "e_a_start": lambda: self.e_a_start >= self.e_a,
-            "e_a_shrink": lambda: self.e_a_shrink > 1,
-            "f_ea": lambda: self.f_ea >= 1,
-            "a_t": lambda: self.a_t >= 1,
+            "rho": lambda: 0 < self.rho < inf,
+            "beta": lambda: 0 < self.beta < inf,
+            "beta_p": lambda: 1 <= self.beta_p < inf,
+            "beta_0": lambda: self.beta <= self.beta_0 < inf,
+            "beta_p0": lambda: self.beta_p <= self.beta_p0 < inf,
+            "e_m": lambda: 0 < self.e_m < inf,
+            "e_a": lambda: 0 < self.e_a < inf,
+            "e_a_start": lambda: self.e_a <= self.e_a_start < inf,
+            "e_a_shrink": lambda: 1 < self.e_a_shrink < inf,
+            "f_ea": lambda: 1 <= self.f_ea < inf,
+            "gtol": lambda: 0 < self.gtol < inf,
+            "a_t": lambda: 1 <= self.a_t < inf,
+            "rho_increase": lambda: 1 <= self.rho_increase < inf,
+            "rho_max": lambda: 0 < self.rho_max < inf,
+            "rho_decrease": lambda: 0 < self.rho_decrease <= 1,
+            "beta_increase": lambda: 1 <= self.beta_increase < inf,
+            "beta_decrease": lambda: 0 < self.beta_decrease <= 1,
             "linearity_ratio": lambda: 0 < self.linearity_ratio < 1,
+            "max_rejections": lambda: _count(self.max_rejections, 1),
+            "max_retunings": lambda: _count(self.max_retunings, 0),
             "min_shrink": lambda: 0 < self.min_shrink < 1,
             "gap_keep": lambda: 0 < self.gap_keep < 1,
         }

@@ -252,6 +252,32 @@ def test_a_setting_of_the_wrong_type_names_the_field(make):
         make()
 
 
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("e_a", float("inf")),
+        ("gtol", float("inf")),
+        ("gtol", -1.0),
+        ("gtol", float("nan")),
+        ("rho", float("inf")),
+        ("max_rejections", -1),
+        ("max_retunings", -5),
+        ("rho_max", float("nan")),
+        ("e_m", float("inf")),
+        ("rho_decrease", 2.0),
+        ("max_rejections", 2**40),
+    ],
+)
+def test_kalman_search_refuses_meaningless_settings(field, value):
+    """KalmanSearch checked only some fields (issue 51, third audit): `e_a = inf` said SUCCESS
+    at the infeasible start, `gtol = inf` at a point short of the optimum, a negative
+    `max_rejections` or NaN `rho_max` ended STALLED or CONSTRAINT_STATIONARY after 0 steps."""
+    kwargs = {field: value, **({"e_a_start": value} if field == "e_a" else {})}
+    with pytest.raises(ValueError, match=f"KalmanSearch: invalid `{field}`"):
+        jt.KalmanSearch(**kwargs)
+    assert jt.KalmanSearch(max_rejections=np.int64(5)).max_rejections == 5
+
+
 def test_numpy_integers_count_as_ints():
     """`max_steps` and `RK4(steps)` take NumPy integers (e.g. from an array of settings) and
     give what Python ints give."""
