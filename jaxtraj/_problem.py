@@ -186,9 +186,11 @@ class Problem(eqx.Module):
         name="problem",
     ):
         try:
+            if np.iscomplexobj(x0):  # (a cast to float64 drops the imaginary part with a warning only)
+                raise TypeError
             x0 = np.asarray(x0, dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"`x0` must be numbers (the initial state); got {x0!r}.") from None
+            raise ValueError(f"`x0` must be real numbers (the initial state); got {x0!r}.") from None
         if x0.ndim != 1 or x0.size == 0:
             raise ValueError(f"`x0` must be a non-empty 1-D array; got shape {x0.shape}.")
         if not np.all(np.isfinite(x0)):

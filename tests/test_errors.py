@@ -209,7 +209,9 @@ def test_problem_arguments_are_checked(kwargs, message):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"x0": ["a", "b"]}, r"`x0` must be numbers \(the initial state\); got \['a', 'b'\]"),
+        ({"x0": ["a", "b"]}, r"`x0` must be real numbers \(the initial state\); got \['a', 'b'\]"),
+        # a complex x0 lost its imaginary part with a warning only (issue 51, third audit)
+        ({"x0": np.array([1j, 0.0])}, r"`x0` must be real numbers \(the initial state\); got array\(\[0\.\+1\.j"),
         ({"num_controls": True}, r"`num_controls` must be an int in 1\.\.10000; got True"),
         ({"num_controls": 2**40}, r"`num_controls` must be an int in 1\.\.10000"),
     ],
