@@ -585,3 +585,26 @@ def test_a_slow_solve_is_not_run_twice_for_its_warm_time(tmp_path, run_here, mon
     r = run_here("solve", "max-range", "--steps", "40", "--out", str(tmp_path / "o"), "--no-plot")
     assert r.returncode == 0, r.stderr
     assert len(calls) == 1 and "not run (first call > 0 s)" in r.stdout
+
+
+def test_a_large_monte_carlo_runs_in_chunks_with_progress(monkeypatch, capsys):
+    """`--monte-carlo 1000000` ran for minutes without a word (issue 51, third audit): above
+    `MONTE_CARLO_CHUNK` runs the study runs in 10 chunks of the same runs (`first_run`), a
+    line each on stderr, with the statistics of one `jt.monte_carlo` call."""
+    import types
+
+    prob, ctrl, a0 = jt.problems.earth_mars.thesis_case(4)
+    sim, errors, key = jt.RK4(5), jt.ThrustErrors(0.01, 1.0), jax.random.key(3)
+    monkeypatch.setattr(_cli, "MONTE_CARLO_CHUNK", 8)
+    capsys.readouterr()
+    got = _cli._monte_carlo_runs("open loop", prob, ctrl, types.SimpleNamespace(params=a0), key, 25, None, errors, sim)
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 9 and lines[-1].startswith("monte carlo, open loop: 25/25 runs (chunk 9/9)")
+    one = jt.monte_carlo(prob, ctrl, a0, key, 25, execution=errors, simulator=sim)
+    np.testing.assert_allclose(got["mean"], one.terminal_mean, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(got["covariance"], one.terminal_covariance, rtol=1e-9, atol=1e-18)
+    assert got["failed"] == int(one.num_failed) == 0
+    part = jt.monte_carlo(prob, ctrl, a0, key, 5, execution=errors, simulator=sim, first_run=20)
+    np.testing.assert_allclose(part.terminal_errors, one.terminal_errors[20:], rtol=1e-10)  # (vmap round-off)
+    with pytest.raises(ValueError, match="`first_run` must be an int >= 0"):
+        jt.monte_carlo(prob, ctrl, a0, key, 5, execution=errors, simulator=sim, first_run=-1)

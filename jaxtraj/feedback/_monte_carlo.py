@@ -193,6 +193,7 @@ def monte_carlo(
     return_trajectories: bool = False,
     dispersion_stride: int = 1,
     simulator=RK4(),
+    first_run: int = 0,
 ) -> MonteCarloResult:
     """Statistical simulation of the open or closed loop around the trajectory of `a` (how
     seed 001 §2 estimates the terminal accuracy of a synthesized control): `n` noisy runs in
@@ -222,7 +223,8 @@ def monte_carlo(
       RK4 solution; bit for bit on CPU), so a noise-free closed loop reproduces it exactly.
 
     **Randomness.** Run i uses `jax.random.fold_in(key, i)`: results are reproducible, and the
-    first runs of a larger study are the same runs.
+    first runs of a larger study are the same runs. `first_run` = k runs k, ..., k + n - 1
+    instead: a large study in chunks (the CLI's progress lines) gives the same runs.
 
     **Arguments:**
 
@@ -247,6 +249,7 @@ def monte_carlo(
       percentiles are a sort over the runs at each band time, the costliest part of the call
       with bands (e.g. 7 on 700 samples: 101 band times).
     - `simulator`: `jt.RK4(steps)`; it sets the sample rate.
+    - `first_run`: the index of the first run (0; see Randomness).
 
     **Returns:** `MonteCarloResult`.
     """
@@ -254,6 +257,10 @@ def monte_carlo(
     check_simulator_rk4(simulator)
     if not (isinstance(n, int) and not isinstance(n, bool) and n >= 2):
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
+    if not (isinstance(first_run, int | np.integer) and not isinstance(first_run, bool) and 0 <= first_run):
+        raise ValueError(f"`first_run` must be an int >= 0; got {first_run!r}.")
+    if first_run + n > 2**32:
+        raise ValueError(f"`first_run` + `n` must be <= 2**32 (run indices are uint32); got {first_run + n:,}.")
     shorthand = [not (isinstance(s, int | float) and s == 0) for s in (sigma_thrust, sigma_pointing_deg)]
     if any(shorthand):
         if execution is not None:
@@ -281,6 +288,7 @@ def monte_carlo(
             simulator.steps,
             levels,
             dispersion_stride if return_trajectories else 0,
+            jnp.asarray(int(first_run), dtype=jnp.uint32),
         )
 
 
@@ -297,8 +305,9 @@ def _masked_stats(values, finite, levels):
 
 
 @eqx.filter_jit
-def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, stride):
-    """`stride` (static): 0 = no dispersion bands, else bands every `stride` samples."""
+def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, stride, first):
+    """`stride` (static): 0 = no dispersion bands, else bands every `stride` samples; `first`
+    (traced, uint32): the index of the first run."""
     save = stride > 0
     grid, x_ref = noise_free(problem, control, a, steps)
     K = gain_sequence(gains, grid.t)
@@ -310,7 +319,7 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
         )
         return xf, (jnp.concatenate([x0[None], xs]) if xs is not None else None), du2  # (xs: None unless save)
 
-    xfs, xs, du2 = jax.vmap(run)(jnp.arange(n))
+    xfs, xs, du2 = jax.vmap(run)(first + jnp.arange(n, dtype=jnp.uint32))
     E = jax.vmap(lambda xf: problem.terminal(tf, xf, problem.args))(xfs)
     finite = jnp.all(jnp.isfinite(xfs), axis=1) & jnp.all(jnp.isfinite(E), axis=1)
     E_mean, E_cov, E_pct = _masked_stats(E, finite, levels)
