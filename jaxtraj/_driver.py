@@ -17,6 +17,7 @@ import numpy as np
 from jax import lax
 
 from ._solution import History, Solution
+from ._status import Status
 
 
 class AbstractSolver(eqx.Module):
@@ -110,6 +111,20 @@ def _print_progress(step, values):
     print("  " + "  ".join(parts), flush=True)
 
 
+#: Progress values of the current point: NaN while there is none (a start that ended
+#: NONFINITE before an accepted step printed its placeholder's zeros).
+_POINT_VALUES = ("objective", "max|E|", "max C", "L_A")
+
+
+def _progress_values(solver, state):
+    values = solver.progress(state)
+    status, iterations = getattr(state, "status", None), getattr(state, "num_iterations", None)
+    if status is None or iterations is None:
+        return values
+    blank = (status == Status.NONFINITE) & (iterations == 0)
+    return {k: jnp.where(blank, jnp.nan, v) if k in _POINT_VALUES else v for k, v in values.items()}
+
+
 def init_state(solver, problem, control, a0, simulator, max_steps, history=True):
     """The solver's initial state; with `history=False` its `History` has length 0 (not
     recorded: under `vmap` the per-step record of a long history costs more than a step)."""
@@ -133,7 +148,7 @@ def run_loop(solver, problem, control, a0, simulator, max_steps, progress_every=
         if progress_every:
             lax.cond(
                 (new.num_steps % progress_every == 0) | new.done,
-                lambda: jax.debug.callback(_print_progress, new.num_steps, solver.progress(new)),
+                lambda: jax.debug.callback(_print_progress, new.num_steps, _progress_values(solver, new)),
                 lambda: None,
             )
         return new_dyn

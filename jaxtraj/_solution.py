@@ -199,6 +199,11 @@ class Solution(eqx.Module):
         if multipliers is None:
             multipliers = stationarity_multipliers(with_knot_gaps(control, ev, params), params, active_tol)[1]
         multipliers = jnp.where(blank, jnp.nan, multipliers)
+        history = eqx.tree_at(  # (its first record held the placeholder's zeros too)
+            lambda h: (h.objective, h.max_constraint_error),
+            history,
+            tuple(jnp.where(blank, jnp.nan, x) for x in (history.objective, history.max_constraint_error)),
+        )
         m = ev.E.shape[0]
         path = {}
         if ev.C is not None:

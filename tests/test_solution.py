@@ -253,6 +253,26 @@ def test_a_start_without_a_finite_point_reports_nan_not_zeros():
         assert np.isnan(float(sol.projected_gradient)) and np.all(np.isnan(np.asarray(sol.multipliers)))
 
 
+def test_a_start_without_a_finite_point_has_no_zeros_in_its_history_or_progress(capsys, tmp_path):
+    """The same solve's history and progress line still held the placeholder's zeros
+    (objective 0, max|E| 0; issue 51, third audit): NaN, and the result saves and loads."""
+    prob = jt.Problem(
+        lambda t, x, u, args: jnp.stack([jnp.sqrt(x[0] - 1.0), u[0]]),
+        [0.0, 0.0],
+        lambda tf, xf, args: xf[1:] - 1.0,
+        ("x2",),
+    )
+    ctrl = jt.controls.PiecewiseConstant(2)
+    sim = jt.RK4(4)
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(1.0, 0.5, 0.5), simulator=sim, progress=1)
+    assert jt.status_name(sol.status) == "NONFINITE" and int(sol.steps) == 1
+    assert np.isnan(float(sol.history.objective[0])) and np.isnan(float(sol.history.max_constraint_error[0]))
+    line = capsys.readouterr().out
+    assert "objective nan" in line and "max|E| nan" in line, line
+    jt.io.save(tmp_path / "r", prob, sol, jt.simulate(prob, ctrl, sol.params, simulator=sim))
+    assert np.isnan(float(jt.io.load(tmp_path / "r")[0].history.objective[0]))
+
+
 def _reach_min_time(**kw):
     """x'' = u, |u| <= 1, reach x(tf) >= 1 (a terminal inequality), minimize tf."""
     return jt.Problem(
