@@ -55,8 +55,9 @@ class KKTReport(eqx.Module):
     def failures(self, ctol: float = 1e-8, gtol: float = 1e-6) -> list[str]:
         """What keeps the point from `satisfied(ctol, gtol)`, one phrase each (empty if it is)."""
         for name, value in (("ctol", ctol), ("gtol", gtol)):
-            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-                raise ValueError(f"KKTReport: `{name}` must be a number > 0; got {value!r}.")
+            # (an infinite tolerance: any point, however infeasible, was a KKT point)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < float("inf"):
+                raise ValueError(f"KKTReport: `{name}` must be a finite number > 0; got {value!r}.")
         out = []
         if self.status != Status.SUCCESS:
             out.append(f"evaluation {status_name(self.status)}")

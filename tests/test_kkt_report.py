@@ -142,6 +142,11 @@ def test_report_prints_its_own_verdict():
     assert optimum.satisfied() and str(optimum).startswith("KKT report, KKT point")
     with pytest.raises(ValueError, match="ctol"):
         optimum.satisfied(ctol="x")
+    # infinite tolerances made the infeasible start a KKT point (issue 51, third audit)
+    start = jt.kkt_report(prob, ctrl, jnp.array([0.0, 1.0]))
+    for bad in ({"ctol": float("inf"), "gtol": float("inf")}, {"gtol": float("inf")}):
+        with pytest.raises(ValueError, match="must be a finite number > 0; got inf"):
+            start.satisfied(**bad)
 
 
 def test_report_counts_complementarity_in_its_verdict():
