@@ -630,6 +630,9 @@ def test_monte_carlo_argument_errors():
         ((np.eye(2), -np.eye(1), np.eye(2)), r"`R` must be positive definite; its least eigenvalue is -1"),
         ((-np.eye(2), np.eye(1), np.eye(2)), r"`Q` must be positive semidefinite"),
         ((np.eye(2), np.eye(1), np.array([[1.0, 2.0], [0.0, 1.0]])), r"`Qf` must be symmetric"),
+        # None or text gave JAX's "None is not a valid value for jnp.array" (issue 51, third audit)
+        ((np.eye(2), np.eye(1), None), r"`Qf` must be an array of numbers; got None"),
+        (("Q", np.eye(1), np.eye(2)), r"`Q` must be an array of numbers; got 'Q'"),
     ],
 )
 def test_lqr_weights_are_checked(weights, message):
@@ -660,6 +663,15 @@ def test_monte_carlo_noise_is_checked(noise, message):
         return
     with pytest.raises(ValueError, match=r"`sigma_pointing_deg` must be finite and >= 0; got inf"):
         ThrustErrors(0.01, np.inf)
+    # ControlErrors took NaN (every run failed), inf and negative sigmas (issue 51, third audit)
+    for kwargs, text in (
+        ({"multiplicative": np.nan}, r"`multiplicative` must be finite and >= 0; got nan"),
+        ({"additive": [0.1, -0.1]}, r"`additive` must be finite and >= 0; got \[ 0\.1 -0\.1\]"),
+        ({"additive": np.inf}, r"`additive` must be finite and >= 0; got inf"),
+        ({"multiplicative": "x"}, r"`multiplicative` must be an array of numbers; got 'x'"),
+    ):
+        with pytest.raises(ValueError, match=text):
+            ControlErrors(**kwargs)
     for key, text in (
         (2**70, r"`key` as an int seed must be in 0\.\.2\*\*64 - 1"),
         ("k", r"`key` must be a JAX PRNG key"),

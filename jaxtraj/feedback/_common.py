@@ -20,6 +20,15 @@ def shape_of(x, t=None):
     return jax.eval_shape(x, t).shape if callable(x) else np.shape(x)
 
 
+def numbers(name, x):
+    """`x` as a float64 array, or a ValueError naming `name` (None or text gave JAX's message,
+    which names no argument)."""
+    try:
+        return as_float64(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be an array of numbers; got {x!r}.") from None
+
+
 def check_shape(name, shape, *allowed):
     if tuple(shape) not in [tuple(a) for a in allowed]:
         want = " or ".join(str(tuple(a)) for a in allowed)

@@ -9,7 +9,7 @@ import jax.core
 import jax.numpy as jnp
 
 from .._checks import as_float64
-from ._common import check_shape
+from ._common import check_shape, numbers
 
 
 class AbstractExecutionErrors(eqx.Module):
@@ -40,6 +40,14 @@ def _sigma(name, value):
         raise ValueError(f"`{name}` must be a scalar; got shape {value.shape}.")
     if not isinstance(value, jax.core.Tracer) and not bool((value >= 0) & jnp.isfinite(value)):
         raise ValueError(f"`{name}` must be finite and >= 0; got {float(value)}.")
+    return value
+
+
+def _sigmas(name, value):
+    """Standard deviations, a scalar or a vector: finite and >= 0, or a ValueError naming `name`."""
+    value = numbers(name, value)
+    if not isinstance(value, jax.core.Tracer) and not bool(jnp.all((value >= 0) & jnp.isfinite(value))):
+        raise ValueError(f"`{name}` must be finite and >= 0; got {value}.")
     return value
 
 
@@ -106,8 +114,9 @@ class ControlErrors(AbstractExecutionErrors):
     additive: jax.Array
 
     def __init__(self, multiplicative=0.0, additive=0.0):
-        self.multiplicative = as_float64(multiplicative)
-        self.additive = as_float64(additive)
+        # (a NaN or inf sigma failed every run; a negative one is no standard deviation)
+        self.multiplicative = _sigmas("multiplicative", multiplicative)
+        self.additive = _sigmas("additive", additive)
 
     def num_noise(self, num_controls):
         return 2 * num_controls

@@ -9,7 +9,7 @@ import numpy as np
 from .._checks import as_float64, check_inputs, check_memory, memory_refusal
 from .._simulate import RK4, simulation_status
 from .._status import Status, as_indexable
-from ._common import check_shape, check_weight, interp_rows
+from ._common import check_shape, check_weight, interp_rows, numbers
 from ._errors import AbstractExecutionErrors, Exact
 from ._lqr import continuous_lqr, discrete_lqr, propagate_covariance
 from ._sampled import bounded_control, check_gains, gain_sequence, noise_free, sample_step
@@ -189,7 +189,7 @@ def tracking_lqr(lin: Linearization, Q, R, Qf, *, discrete=True, multiplicative=
     `Q`, `Qf`: `(n, n)` PSD; `R`: `(m, m)` positive definite.
     """
     n, m = lin.B.shape[1:]
-    Q, R, Qf = as_float64(Q), as_float64(R), as_float64(Qf)
+    Q, R, Qf = numbers("Q", Q), numbers("R", R), numbers("Qf", Qf)
     check_shape("Q", Q.shape, (n, n))
     check_shape("R", R.shape, (m, m))
     check_shape("Qf", Qf.shape, (n, n))
