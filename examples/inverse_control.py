@@ -85,6 +85,11 @@ def main(argv=None):
         (value, (start, status)), grad = loss_and_grad(theta, start)
         if status != jt.Status.SUCCESS:
             raise SystemExit(f"step {k}: the solve ended {jt.status_name(status)}")
+        if not (np.isfinite(float(value)) and all(bool(jnp.all(jnp.isfinite(g))) for g in grad.values())):
+            # (a huge --noise: the loss overflowed and the "recovered" values were the guess)
+            raise SystemExit(
+                f"step {k}: the loss is {float(value)} (its gradient non-finite); no fit with --noise {opts.noise:g}"
+            )
         history.append((k, float(jnp.exp(theta["c"])), float(jnp.exp(theta["q"])), float(value)))
         if k % 50 == 0 or k == opts.steps - 1:
             print(f"  step {k:4d}: c = {history[-1][1]:.6f}, q = {history[-1][2]:.6f}, loss {float(value):.3e}")

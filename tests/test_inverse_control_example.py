@@ -14,3 +14,12 @@ def test_inverse_control_recovers_damping_and_weight(capsys):
     loss = result["history"][:, 3]
     assert loss[-1] < 1e-10 * loss[0]
     assert "recovered c = 0.700000" in capsys.readouterr().out
+
+
+@pytest.mark.slow  # ~15 s: the compilation of the differentiated solve
+def test_an_overflowing_loss_stops_the_fit():
+    """`--noise 1e300`: the loss overflowed to inf and the script printed the guess as the
+    "recovered" values, exit 0 (issue 51, third audit)."""
+    example = load_example("inverse_control")
+    with pytest.raises(SystemExit, match=r"step 0: the loss is inf .*no fit with --noise 1e\+300"):
+        example.main(["--steps", "3", "--noise", "1e300"])
