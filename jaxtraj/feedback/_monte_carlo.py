@@ -259,8 +259,6 @@ def monte_carlo(
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
     if not (isinstance(first_run, int | np.integer) and not isinstance(first_run, bool) and 0 <= first_run):
         raise ValueError(f"`first_run` must be an int >= 0; got {first_run!r}.")
-    if first_run + n > 2**32:
-        raise ValueError(f"`first_run` + `n` must be <= 2**32 (run indices are uint32); got {first_run + n:,}.")
     shorthand = [not (isinstance(s, int | float) and s == 0) for s in (sigma_thrust, sigma_pointing_deg)]
     if any(shorthand):
         if execution is not None:
@@ -269,6 +267,8 @@ def monte_carlo(
     N, nx, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     kept = nx + problem.num_constraints + (nx * (N + 1) if return_trajectories else 0)
     check_memory("n", 8 * n * kept, f"{n:,} runs ({kept} numbers each)")
+    if first_run + n > 2**32:
+        raise ValueError(f"`first_run` + `n` must be <= 2**32 (run indices are uint32); got {first_run + n:,}.")
     gains = check_gains(gains, N, m, nx)
     noise = _noise_model(problem, execution, process_noise, initial_covariance, correlation_time)
     levels = as_float64(percentiles)
