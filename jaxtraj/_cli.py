@@ -147,7 +147,14 @@ def parse_control(spec):
 
 def _parametrize(prob, spec):
     """`prob.parametrize` of the family named by `spec`, its refusal as a usage error."""
+    import jaxtraj as jt
+
     family = parse_control(spec)
+    if prob.final_time is not None and isinstance(family, jt.controls.SaturatedSpline):
+        # a fixed final time takes tf as one entry, not free durations (the spec cannot say so)
+        family = jt.controls.SaturatedSpline(
+            family.segments, family.degree, family.lower, family.upper, free_durations=False
+        )
     try:
         return prob.parametrize(family)
     except ValueError as e:

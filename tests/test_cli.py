@@ -223,6 +223,22 @@ def leaves():
 """
 
 
+def test_a_spline_on_a_fixed_final_time_solves(tmp_path, run_here):
+    """`--control spline:...` on a problem with a fixed final time was refused with advice,
+    `SaturatedSpline(free_durations=False)`, that no spec can express (issue 51, third
+    audit): the CLI makes that spline. x'' = u from rest to (1, 0) in time 1, min int u^2:
+    J* = 12 (u = 6 - 12 t, within the spline's +-10, linear: exact for degree 1)."""
+    (tmp_path / "odd.py").write_text(_ODD_FILE)
+    out = tmp_path / "o"
+    r = run_here(
+        "solve", "odd.py:fixed_time", "--control", "spline:4:1:-10:10", "--steps", "4", "--no-plot", "--out", str(out)
+    )
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "SUCCESS" and abs(summary["objective"] - 12.0) < 1e-6
+    assert "free_durations=False" in summary["inputs"]["control"]
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -230,10 +246,6 @@ def leaves():
         (("odd.py:complex_dynamics",), "must return real numbers; got dtype complex128"),
         (("odd.py:bounded", "--control", "parabolic:3"), "PiecewiseParabolic cannot take the problem's control_lower"),
         (("odd.py:bounded", "--control", "parabolic:3", "--starts", "2"), "so KalmanSQP cannot honor them"),
-        (
-            ("odd.py:fixed_time", "--control", "spline:4:1:-1:1"),
-            "--control spline:4:1:-1:1: `control`: SaturatedSpline",
-        ),
         (("odd.py:leaves",), "odd.py:leaves called sys.exit(0); nothing was solved"),
         (("odd.py:fixed_time", "--tf", "2"), "--tf: odd.py:fixed_time has a fixed final_time (1)"),
         (("odd.py:bounded", "--tf", "1e308"), "--tf 1e+308: `a` must be finite"),
