@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._checks import check_settings
+from ._checks import check_settings, is_count
 from ._driver import AbstractSolver
 from ._kkt import ACTIVE_TOL, inequality_rows, multipliers, parameter_scale
 from ._sensitivity import Evaluation, evaluate_jitted
@@ -367,24 +367,21 @@ class AugmentedLagrangian(AbstractSolver):
         if self.method not in ("forward", "unit", "fd"):
             raise ValueError(f"AugmentedLagrangian: `method` must be 'forward', 'unit' or 'fd'; got {self.method!r}.")
 
-        def is_int(v, low):
-            return isinstance(v, int) and not isinstance(v, bool) and v >= low
-
         checks = {
             "ctol": lambda: 0 < self.ctol < math.inf,
             "gtol": lambda: 0 < self.gtol < math.inf,
             "inner_tol_init": lambda: self.inner_tol_init > 0,
             "inner_tol_shrink": lambda: 0 < self.inner_tol_shrink <= 1,
-            "max_inner": lambda: is_int(self.max_inner, 1),
-            "max_outer": lambda: is_int(self.max_outer, 1),
+            "max_inner": lambda: is_count(self.max_inner, 1),
+            "max_outer": lambda: is_count(self.max_outer, 1),
             "penalty_init": lambda: self.penalty_init is None or self.penalty_init > 0,
             "penalty_growth": lambda: self.penalty_growth > 1,
             "feasibility_ratio": lambda: 0 < self.feasibility_ratio < 1,
             "penalty_max": lambda: self.penalty_max > 0,
             "multiplier_max": lambda: self.multiplier_max > 0,
             "learning_rate": lambda: self.learning_rate > 0,
-            "memory_size": lambda: is_int(self.memory_size, 1),
-            "max_linesearch_steps": lambda: is_int(self.max_linesearch_steps, 1),
+            "memory_size": lambda: is_count(self.memory_size, 1),
+            "max_linesearch_steps": lambda: is_count(self.max_linesearch_steps, 1),
             "min_duration": lambda: self.min_duration > 0,
             "precondition": lambda: isinstance(self.precondition, bool),
             "curvature": lambda: self.curvature > 0,

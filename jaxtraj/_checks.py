@@ -36,6 +36,11 @@ def check_settings(owner: str, obj, rules: dict):
             raise ValueError(f"{owner}: invalid `{name}` = {getattr(obj, name)!r} (see the field docs).")
 
 
+def is_count(value, least: int = 0) -> bool:
+    """An int (not a bool) in least..2**31 - 1: a count the compiled loops hold in int32."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool) and bool(least <= value < 2**31)
+
+
 def as_float64(x):
     """`x` as a float64 array, after `require_float64`."""
     require_float64()

@@ -23,7 +23,7 @@ import numpy as np
 from jax import lax
 
 from ._bounds import require_rows
-from ._checks import check_settings
+from ._checks import check_settings, is_count
 from ._driver import AbstractSolver, only_where
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import ACTIVE_TOL, constraint_rows, inequality_rows, stationarity
@@ -71,11 +71,6 @@ def _largest_alpha(ok_of_alpha, fallback):
     alphas = jnp.asarray(_ALPHAS)
     ok = jax.vmap(ok_of_alpha)(alphas)
     return jnp.where(jnp.any(ok), alphas[jnp.argmax(ok)], fallback)
-
-
-def _count(value, least):
-    """An int in least..2**31 - 1 (a count the compiled loop holds in int32)."""
-    return isinstance(value, int | np.integer) and not isinstance(value, bool) and least <= value < 2**31
 
 
 class KalmanSearch(AbstractSolver):
@@ -159,8 +154,8 @@ class KalmanSearch(AbstractSolver):
             "beta_increase": lambda: 1 <= self.beta_increase < inf,
             "beta_decrease": lambda: 0 < self.beta_decrease <= 1,
             "linearity_ratio": lambda: 0 < self.linearity_ratio < 1,
-            "max_rejections": lambda: _count(self.max_rejections, 1),
-            "max_retunings": lambda: _count(self.max_retunings, 0),
+            "max_rejections": lambda: is_count(self.max_rejections, 1),
+            "max_retunings": lambda: is_count(self.max_retunings, 0),
             "min_shrink": lambda: 0 < self.min_shrink < 1,
             "gap_keep": lambda: 0 < self.gap_keep < 1,
         }

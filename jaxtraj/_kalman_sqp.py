@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._bounds import require_rows
-from ._checks import check_settings
+from ._checks import check_settings, is_count
 from ._driver import AbstractSolver
 from ._kalman import inequality_step, keep_knots_ordered, sequential_update
 from ._kkt import (
@@ -196,8 +196,8 @@ class KalmanSQP(AbstractSolver):
             "r_rel": lambda: 0 < self.r_rel < 1,
             "path_dependence": lambda: 0 < self.path_dependence < 1,
             "elastic": lambda: 0 < self.elastic < 1,
-            "exact_iterations": lambda: isinstance(self.exact_iterations, int) and 0 <= self.exact_iterations < 2**31,
-            "acceptable_steps": lambda: isinstance(self.acceptable_steps, int) and 1 <= self.acceptable_steps < 2**31,
+            "exact_iterations": lambda: is_count(self.exact_iterations, 0),
+            "acceptable_steps": lambda: is_count(self.acceptable_steps, 1),
         }
         check_settings("KalmanSQP", self, checks)
 
