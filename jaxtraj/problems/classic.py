@@ -574,8 +574,9 @@ def free_flying_robot(segments: int = 30) -> ClassicProblem:
     study of issue 49 (the cost of an iteration as parameters and rows grow). The optimum is
     bang-bang, and the restricted problem (30 pieces, RK4) has several local optima: 7.78974
     (the reference, the best known: `FREE_FLYING_ROBOT_COST`), 7.97519 (IPOPT from the zero
-    start), 8.01782, 8.01819 and 8.02074 (the default solver from the zero start; which one follows the
-    start's last bits: an open defect, issue 49). `gap` (0.25) admits those, not 10.11 (the
+    start), 8.01782 (the default solver from the zero start and its round-off perturbations,
+    under each ISA setting: RESULTS.md, roundoff.py --gallery), 8.01819 and 8.02074 (where
+    earlier versions went from perturbed starts). `gap` (0.25) admits those, not 10.11 (the
     default from u = 0.5 perturbed by 1e-10)."""
     problem = Problem(
         _free_flying_robot, [-10.0, -10.0, np.pi / 2, 0.0, 0.0, 0.0], _at_origin, tuple(f"{n}(tf) = 0" for n in _FFR_STATES),
