@@ -424,12 +424,10 @@ def _monte_carlo_runs(name, prob, ctrl, sol, key, n, gains, errors, sim):
                 file=sys.stderr,
                 flush=True,
             )
-    count = int(finite.sum())  # (the statistics of `jt.monte_carlo`: the finite runs only)
-    mean = np.where(finite[:, None], E, 0.0).sum(axis=0) / count if count else np.full(E.shape[1], np.nan)
-    d = np.where(finite[:, None], E - mean, 0.0)
-    cov = d.T @ d / (count - 1) if count >= 2 else np.full((E.shape[1],) * 2, np.nan)
-    cov = (cov + cov.T) / 2
-    return {"mean": mean, "std": np.sqrt(np.diag(cov)), "covariance": cov, "failed": n - count}
+    from .feedback._monte_carlo import _masked_stats  # (`jt.monte_carlo`'s statistics: finite runs only)
+
+    mean, cov, _ = (np.asarray(x) for x in _masked_stats(E, finite, np.array([50.0])))
+    return {"mean": mean, "std": np.sqrt(np.diag(cov)), "covariance": cov, "failed": n - int(finite.sum())}
 
 
 def _gallery():
