@@ -424,9 +424,9 @@ def _monte_carlo_runs(name, prob, ctrl, sol, key, n, gains, errors, sim):
                 file=sys.stderr,
                 flush=True,
             )
-    from .feedback._monte_carlo import _masked_stats  # (`jt.monte_carlo`'s statistics: finite runs only)
+    from .feedback._monte_carlo import masked_stats  # (`jt.monte_carlo`'s statistics: finite runs only)
 
-    mean, cov, _ = (np.asarray(x) for x in _masked_stats(E, finite, np.array([50.0])))
+    mean, cov, _ = (np.asarray(x) for x in masked_stats(E, finite, np.zeros(0)))
     return {"mean": mean, "std": np.sqrt(np.diag(cov)), "covariance": cov, "failed": n - int(finite.sum())}
 
 

@@ -680,8 +680,8 @@ def test_monte_carlo_noise_is_checked(noise, message):
             monte_carlo(prob, _DI_CTRL, _DI_PARAMS, key, 4, simulator=_DI_SIM, **noise)
     runs = monte_carlo(prob, _DI_CTRL, _DI_PARAMS, jax.random.key(0), 4, simulator=_DI_SIM, **noise)
     assert int(runs.num_failed) == 0 and np.all(np.asarray(runs.terminal_std) > 0)
-    from jaxtraj.feedback._monte_carlo import _masked_stats
+    from jaxtraj.feedback._monte_carlo import masked_stats
 
     one_finite = np.array([True, False, False])
-    _, cov, _ = _masked_stats(jnp.ones((3, 2)), jnp.asarray(one_finite), jnp.array([50.0]))
+    _, cov, _ = masked_stats(jnp.ones((3, 2)), jnp.asarray(one_finite), jnp.array([50.0]))
     assert np.all(np.isnan(np.asarray(cov)))

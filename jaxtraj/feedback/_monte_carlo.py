@@ -292,7 +292,7 @@ def monte_carlo(
         )
 
 
-def _masked_stats(values, finite, levels):
+def masked_stats(values, finite, levels):
     """Mean, unbiased covariance and percentiles over the leading axis of `values` `(R, d)`,
     leaving out the rows where `finite` is False."""
     count = jnp.sum(finite).astype(values.dtype)  # (a float: it divides the values)
@@ -322,8 +322,8 @@ def _monte_carlo(problem, control, a, key, n, gains, noise, steps, levels, strid
     xfs, xs, du2 = jax.vmap(run)(first + jnp.arange(n, dtype=jnp.uint32))
     E = jax.vmap(lambda xf: problem.terminal(tf, xf, problem.args))(xfs)
     finite = jnp.all(jnp.isfinite(xfs), axis=1) & jnp.all(jnp.isfinite(E), axis=1)
-    E_mean, E_cov, E_pct = _masked_stats(E, finite, levels)
-    x_mean, x_cov, _ = _masked_stats(xfs, finite, levels[:0])
+    E_mean, E_cov, E_pct = masked_stats(E, finite, levels)
+    x_mean, x_cov, _ = masked_stats(xfs, finite, levels[:0])
     dispersion = None
     if xs is not None:  # (save: the runs' states came back)
         N = grid.tau.shape[0]
