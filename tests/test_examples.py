@@ -33,7 +33,15 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize(("script", "argv", "message"), CASES, ids=[f"{s}{' '.join(a)}" for s, a, _ in CASES])
+# one case per script in the fast tier (a subprocess each, ~4 s); the rest with the slow studies
+_seen = set()
+PARAMS = []
+for _s, _a, _m in CASES:
+    PARAMS.append(pytest.param(_s, _a, _m, id=f"{_s}{' '.join(_a)}", marks=() if _s not in _seen else pytest.mark.slow))
+    _seen.add(_s)
+
+
+@pytest.mark.parametrize(("script", "argv", "message"), PARAMS)
 def test_a_bad_argument_is_argparses_one_line_error(script, argv, message, tmp_path):
     env = {**os.environ, "PYTHONPATH": ROOT, "JAXTRAJ_CACHE_DIR": str(tmp_path / "cache")}
     r = subprocess.run(
