@@ -93,7 +93,10 @@ def main(argv=None):
         history.append((k, float(jnp.exp(theta["c"])), float(jnp.exp(theta["q"])), float(value)))
         if k % 50 == 0 or k == opts.steps - 1:
             print(f"  step {k:4d}: c = {history[-1][1]:.6f}, q = {history[-1][2]:.6f}, loss {float(value):.3e}")
-        updates, state = optimizer.update(grad, state)
+        # (optax's Adam raises a float to its int32 step count: standard promotion for that
+        # call, so the script also runs where strict promotion is on, as in the tests)
+        with jax.numpy_dtype_promotion("standard"):
+            updates, state = optimizer.update(grad, state)
         theta = optax.apply_updates(theta, updates)
     c, q = (float(jnp.exp(theta[k])) for k in ("c", "q"))
     print(

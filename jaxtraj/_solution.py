@@ -65,7 +65,9 @@ class History(eqx.Module):
     def clear_from(self, steps) -> "History":
         """A copy with the entries from `steps` on reset to unused."""
         unused = History.empty(self.objective.shape[-1], tuple(self.details))
-        return jax.tree.map(lambda h, e: jnp.where(jnp.arange(h.shape[-1]) < steps, h, e), self, unused)
+        index = jnp.arange(self.objective.shape[-1])
+        kept = index < jnp.asarray(steps).astype(index.dtype)  # (int32 steps, an int64 index)
+        return jax.tree.map(lambda h, e: jnp.where(kept, h, e), self, unused)
 
 
 def max_violation(ev, control, a):
