@@ -235,7 +235,8 @@ def _user_function(spec):
     try:
         if where.endswith(".py"):
             if not os.path.isfile(where):
-                raise _UsageError(f"problem file {where!r} not found")
+                what = "is a folder, not a file" if os.path.isdir(where) else "not found"
+                raise _UsageError(f"problem file {where!r} {what}")
             # a module name that is the same in every process (`hash` is salted per process)
             key = hashlib.sha256(os.path.abspath(where).encode()).hexdigest()[:16]
             module_spec = importlib.util.spec_from_file_location(f"_jaxtraj_user_{key}", where)

@@ -17,7 +17,7 @@ import numpy as np
 from jax import lax
 
 from ._solution import History, Solution
-from ._status import Status
+from ._status import without_point
 
 
 class AbstractSolver(eqx.Module):
@@ -121,7 +121,7 @@ def _progress_values(solver, state):
     status, iterations = getattr(state, "status", None), getattr(state, "num_iterations", None)
     if status is None or iterations is None:
         return values
-    blank = (status == Status.NONFINITE) & (iterations == 0)
+    blank = without_point(status, iterations)
     return {k: jnp.where(blank, jnp.nan, v) if k in _POINT_VALUES else v for k, v in values.items()}
 
 

@@ -1,6 +1,8 @@
 """`jt.kkt_report`: the first-order optimality conditions of the restricted problem at one
 parameter vector, each residual by constraint name, with the multipliers that give them."""
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -120,12 +122,12 @@ def kkt_report(
     same least-squares rounds as the solvers' stationarity test, and every residual by
     constraint name. `print(report)` gives a table; `report.satisfied(ctol, gtol)` the verdict.
 
-    **Raises:** `ValueError` for `params` of the wrong shape or a non-positive `active`.
+    **Raises:** `ValueError` for `params` of the wrong shape or an `active` that is not finite and > 0.
     """
     a = check_inputs(problem, control, params)
     check_simulator(simulator)
-    if not (isinstance(active, int | float) and active > 0):
-        raise ValueError(f"`active` must be a number > 0; got {active!r}.")
+    if not (isinstance(active, int | float) and not isinstance(active, bool) and 0 < active < math.inf):
+        raise ValueError(f"`active` must be a finite number > 0; got {active!r}.")
     G, E, g, lam, nu, residual, status = _residuals(problem, control, a, simulator, float(active))
     eq_names, path_names, other_names = _row_names(problem, control)
     violation = {n: jnp.abs(e) for n, e in zip(eq_names, E)}

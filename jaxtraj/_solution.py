@@ -7,7 +7,7 @@ import numpy as np
 
 from ._bounds import knot_gap_rows
 from ._kkt import inequality_rows, stationarity_multipliers, weak_rows, with_knot_gaps
-from ._status import Status, as_indexable, diverged
+from ._status import Status, as_indexable, diverged, without_point
 
 
 class History(eqx.Module):
@@ -196,7 +196,7 @@ class Solution(eqx.Module):
             Status.DIVERGED,
             Status.where(done, status, Status.MAX_ITERATIONS),
         )
-        blank = (final == Status.NONFINITE) & (iterations == 0)
+        blank = without_point(final, iterations)
         ev = jax.tree.map(lambda x: jnp.where(blank, jnp.nan, x) if jnp.issubdtype(x.dtype, jnp.floating) else x, ev)
         if multipliers is None:
             multipliers = stationarity_multipliers(with_knot_gaps(control, ev, params), params, active_tol)[1]

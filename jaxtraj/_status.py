@@ -62,6 +62,13 @@ def diverged(G, a):
     return (jnp.abs(G) > DIVERGENCE) | (jnp.max(jnp.abs(a)) > DIVERGENCE)
 
 
+def without_point(status, iterations):
+    """Whether a solve ended NONFINITE before its first accepted step: it has no finite point,
+    so its point values (objective, constraint errors) are reported as NaN, not as the zeros
+    of a placeholder evaluation."""
+    return (status == Status.NONFINITE) & (iterations == 0)
+
+
 def failed(status):
     """The status of an evaluation found unusable: its own failure, or NONFINITE where the
     integration succeeded but a value derived from it (merit, multipliers) is not finite."""

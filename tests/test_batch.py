@@ -349,6 +349,9 @@ def test_bad_arguments():
     # a spread of the wrong length was a NumPy broadcast error (issue 51)
     with pytest.raises(ValueError, match=r"`spread` must be a number or \d+ numbers"):
         random_starts(PROB, CTRL, jax.random.key(0), 3, A0, spread=[0.1, 0.2])
+    # a huge spread overflowed in NumPy (a RuntimeWarning) before the error (issue 51)
+    with pytest.raises(ValueError, match=r"could not generate valid starts \(not finite"):
+        random_starts(PROB, CTRL, jax.random.key(0), 3, A0, spread=1e300)
     with pytest.raises(ValueError, match=r"`redraws` must be an int >= 0"):
         random_starts(PROB, CTRL, jax.random.key(0), 3, A0, redraws=-1)
     with pytest.raises(ValueError, match=r"`simulator`"):

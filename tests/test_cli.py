@@ -314,6 +314,14 @@ def test_empty_out_is_refused(run_here):
     assert r.returncode == 2 and r.stderr.strip() == "jaxtraj: error: --out must not be empty", r.stderr
 
 
+def test_a_problem_file_that_is_a_folder_is_named_so(tmp_path, run_here):
+    """(It was reported "not found", though it is there: issue 51's third audit.)"""
+    (tmp_path / "p.py").mkdir()
+    r = run_here("solve", f"{tmp_path / 'p.py'}:make", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip() == f"jaxtraj: error: problem file '{tmp_path / 'p.py'}' is a folder, not a file", r.stderr
+
+
 def test_unwritable_out(tmp_path, run_here):
     blocker = tmp_path / "file"
     blocker.write_text("x")

@@ -731,6 +731,8 @@ def test_path_constraint_analytic_optimum(segments, hessian):
     assert abs(float(free.objective) - 6.0) < 1e-9
 
 
+# a round-off study (three solves of two problems): the slow tier and `make test-isa`
+@pytest.mark.slow
 def test_a_start_at_rest_and_its_round_off_perturbations_take_the_same_path():
     """The minimum-time double integrator's naive start is at rest (u = 0): W = 0, and E's
     columns of the switch time and tf are 0. Moved by 1e-12 / 1e-10 (absolute), W ~ 9 eps

@@ -87,6 +87,8 @@ def test_bad_arguments_are_named():
     ctrl = jt.controls.PiecewiseLinear(3)
     with pytest.raises(ValueError, match="`active`"):
         jt.kkt_report(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), active=0.0)
+    with pytest.raises(ValueError, match="`active` must be a finite number > 0; got inf"):  # (was accepted)
+        jt.kkt_report(prob, ctrl, ctrl.initial_guess(1.0, 0.0, 0.0), active=float("inf"))
     with pytest.raises(ValueError, match="shape"):
         jt.kkt_report(prob, ctrl, jnp.zeros(3))
 

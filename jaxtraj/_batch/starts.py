@@ -59,28 +59,32 @@ def _draw(problem, control, key, n, around, spread):
     t_idx = np.asarray(control.time_indices, int)
     other = np.setdiff1d(np.arange(control.num_params), t_idx)
     knots, jac, z, noise = (np.asarray(x) for x in _draws(control, around, key, n))
-    # times: perturb the knot gaps multiplicatively, solve the time parameters back
-    gaps = np.diff(knots)
-    jac = jac[:, t_idx]  # knots are linear in the time parameters
-    t_spread = float(np.mean(spread[t_idx])) if t_idx.size else 0.0
-    new_knots = np.concatenate([np.zeros((n, 1)), np.cumsum(gaps * np.exp(t_spread * z), axis=1)], axis=1)
-    if problem.final_time is not None:  # tf fixed: the perturbed gaps shared out over [0, T]
-        new_knots *= knots[-1] / new_knots[:, -1:]
-    times = np.linalg.lstsq(jac, new_knots.T, rcond=None)[0].T
-    # other entries: additive noise on their own scale, then the bounds
-    vals = np.asarray(around)[other]
-    scale = float(np.sqrt(np.mean(vals**2))) if vals.size and np.any(vals != 0) else 1.0
-    starts = np.asarray(around)[None, :] + spread * scale * noise
-    starts[:, t_idx] = times
-    idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
-    starts[:, idx] = np.clip(starts[:, idx], np.asarray(lo), np.asarray(hi))
-    if problem.free_initial_state:  # free initial-state components within their bounds
-        idx = np.asarray(control.parameter_indices, int)
-        starts[:, idx] = np.clip(starts[:, idx], *problem.initial_state_bounds)
+    # (a huge spread overflows to inf/NaN: refused below with a clear error, not warned about)
+    with np.errstate(over="ignore", invalid="ignore"):
+        # times: perturb the knot gaps multiplicatively, solve the time parameters back
+        gaps = np.diff(knots)
+        jac = jac[:, t_idx]  # knots are linear in the time parameters
+        t_spread = float(np.mean(spread[t_idx])) if t_idx.size else 0.0
+        new_knots = np.concatenate([np.zeros((n, 1)), np.cumsum(gaps * np.exp(t_spread * z), axis=1)], axis=1)
+        if problem.final_time is not None:  # tf fixed: the perturbed gaps shared out over [0, T]
+            new_knots *= knots[-1] / new_knots[:, -1:]
+        times = np.linalg.lstsq(jac, new_knots.T, rcond=None)[0].T
+        # other entries: additive noise on their own scale, then the bounds
+        vals = np.asarray(around)[other]
+        scale = float(np.sqrt(np.mean(vals**2))) if vals.size and np.any(vals != 0) else 1.0
+        starts = np.asarray(around)[None, :] + spread * scale * noise
+        starts[:, t_idx] = times
+        idx, lo, hi = value_bounds(control, problem.control_lower, problem.control_upper)
+        starts[:, idx] = np.clip(starts[:, idx], np.asarray(lo), np.asarray(hi))
+        if problem.free_initial_state:  # free initial-state components within their bounds
+            idx = np.asarray(control.parameter_indices, int)
+            starts[:, idx] = np.clip(starts[:, idx], *problem.initial_state_bounds)
     # check the promise (vectorized version of control.validate's ordering checks)
     kn = np.asarray(_all_knots(control, jnp.asarray(starts)))
     if not (np.all(np.isfinite(starts)) and np.all(np.diff(kn, axis=1) > 0) and np.all(kn[:, -1] > 0)):
-        raise ValueError("`around`/`spread`: could not generate valid starts (knots not increasing); lower `spread`.")
+        raise ValueError(
+            "`around`/`spread`: could not generate valid starts (not finite, or knots not increasing); lower `spread`."
+        )
     return starts
 
 
