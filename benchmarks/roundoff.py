@@ -11,7 +11,7 @@ objective between the starts and the largest projected gradient of the successfu
     python benchmarks/roundoff.py --only sail     # earth-mars | sail | attitude
 
 `--gallery` (issue 49's target: iteration counts within 2x over a start, its perturbations and
-two ISA settings) runs the default KalmanSQP on every problem of `jt.problems.classic` and on
+two ISA settings) runs the default KalmanSQP (or `--solver`: its line search, with BFGS) on every problem of `jt.problems.classic` and on
 the pendulum minimum time of `benchmarks/unseen.py`, from the naive start and its 1e-12 and
 1e-10 perturbations, under each `--isa` setting (XLA's `--xla_cpu_max_isa`, a subprocess
 each: another CPU's vectorization and FMA use on this one), and prints the iteration counts,
@@ -111,14 +111,22 @@ def gallery_cases():
             yield name, prob, ctrl, ctrl.initial_guess(tf, u, u)
 
 
-def gallery_rows():
+GALLERY_SOLVERS = {
+    "default": jt.KalmanSQP(),
+    "line-search": jt.KalmanSQP(globalization="line-search"),
+    "bfgs-line-search": jt.KalmanSQP(hessian="bfgs", globalization="line-search"),
+}
+
+
+def gallery_rows(solver_name):
     """One JSON line per problem: iterations, statuses and objectives from the start and its
     perturbations (`a0 + eps r max(|a0|, 1)`, eps in GALLERY_EPS, one fixed r)."""
+    solver = GALLERY_SOLVERS[solver_name]
     for name, prob, ctrl, a0 in gallery_cases():
         a0 = np.asarray(a0, dtype=np.float64)
         r = np.random.default_rng(0).standard_normal(a0.shape)
         rows = [a0] + [a0 + eps * r * np.maximum(np.abs(a0), 1.0) for eps in GALLERY_EPS]
-        sols = [jt.solve(prob, ctrl, jnp.asarray(a), simulator=jt.RK4(40), max_steps=5000) for a in rows]
+        sols = [jt.solve(prob, ctrl, jnp.asarray(a), solver, simulator=jt.RK4(40), max_steps=5000) for a in rows]
         print(
             json.dumps(
                 {
@@ -132,7 +140,7 @@ def gallery_rows():
         )
 
 
-def gallery_table(isas):
+def gallery_table(isas, solver_name):
     """Run `gallery_rows` under each ISA setting (a subprocess each) and print the table."""
     runs = {}
     for isa in isas:
@@ -140,7 +148,7 @@ def gallery_table(isas):
         if isa != "default":
             env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa}".strip()
         out = subprocess.run(
-            [sys.executable, os.path.abspath(__file__), "--gallery-rows"],
+            [sys.executable, os.path.abspath(__file__), "--gallery-rows", "--solver", solver_name],
             env=env,
             capture_output=True,
             text=True,
@@ -171,12 +179,13 @@ def main(argv=None):
     p.add_argument("--only", choices=["earth-mars", "sail", "attitude"])
     p.add_argument("--gallery", action="store_true", help="the gallery's iteration spread (see above)")
     p.add_argument("--isa", nargs="*", default=["default"], help="XLA ISA settings for --gallery")
+    p.add_argument("--solver", choices=list(GALLERY_SOLVERS), default="default", help="the solver of --gallery")
     p.add_argument("--gallery-rows", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.gallery_rows:
-        return gallery_rows()
+        return gallery_rows(args.solver)
     if args.gallery:
-        return gallery_table(args.isa)
+        return gallery_table(args.isa, args.solver)
     print(
         "| problem | solver | SUCCESS / starts | other outcomes | objective spread | "
         "max proj. grad. (SUCCESS) | time [s] |"

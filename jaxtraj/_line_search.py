@@ -19,6 +19,7 @@ from jax import lax
 from ._checks import check_settings
 from ._driver import only_where
 from ._kkt import (
+    active_rows,
     inequality_rows,
     is_feasible,
     kkt_outcome,
@@ -32,9 +33,14 @@ from ._kkt import (
     with_knot_gaps,
     without_scale,
 )
+from ._penalty import PenaltyCap, far_from_feasible, natural_scale, violation_of
 from ._sensitivity import Evaluation, lagrangian_hessian
 from ._solution import History
 from ._status import Status, failed
+
+#: Far from feasible (`_penalty.far_from_feasible` with this ratio, `TrustRegion`'s
+#: `feasibility_first`) the penalty is never capped: the violation's descent needs it.
+FAR = 0.1
 
 
 def bfgs_update(B, s, y, damping=0.2):
@@ -70,6 +76,7 @@ class LineSearchState(eqx.Module):
     lam: jax.Array
     B: jax.Array
     mu: jax.Array
+    cap: PenaltyCap  # where the penalty was last capped (`LineSearch.mu_max`)
     d: jax.Array  # search direction of the line search in progress
     dlam: jax.Array
     alpha: jax.Array
@@ -98,7 +105,12 @@ class LineSearch(eqx.Module):
     - `radius`: initial cap on a step's largest component |d_i| (parameter units, 0.5).
     - `armijo`: sufficient-decrease factor (1e-4).
     - `min_step`: smallest step before no progress is declared (1e-8).
-    - `mu_max`: a merit penalty above this is not carried over to the next direction (1e8).
+    - `mu_max`, `cap_progress`: near feasibility the penalty carried over to the next
+      direction is capped at `mu_max` x |B|_F / |A|_F^2 (100; B the QP's Hessian, A the rows
+      of E and the active inequality rows), by `TrustRegion`'s rule (the same two settings):
+      a penalty kept at what a step that traded objective for a little feasibility once
+      asked for made the merit crawl (orbit raising with BFGS: 114-399 iterations over a start
+      and its round-off perturbations, a penalty of 5e4 at |E| ~ 5e-5).
     - `flat_steps`: accepted steps in a row within the merit's round-off (and without halving
       the projected gradient) that count as no progress (10).
     """
@@ -106,7 +118,8 @@ class LineSearch(eqx.Module):
     radius: float = 0.5
     armijo: float = 1e-4
     min_step: float = 1e-8
-    mu_max: float = 1e8
+    mu_max: float = 100.0
+    cap_progress: float = 0.01
     flat_steps: int = 10
 
     def __check_init__(self):
@@ -115,6 +128,7 @@ class LineSearch(eqx.Module):
             "armijo": lambda: 0 < self.armijo < 0.5,
             "min_step": lambda: 0 < self.min_step < 1,
             "mu_max": lambda: self.mu_max > 0,
+            "cap_progress": lambda: 0 <= self.cap_progress < 1,
             "flat_steps": lambda: isinstance(self.flat_steps, int) and self.flat_steps >= 1,
         }
         check_settings("LineSearch", self, checks)
@@ -181,6 +195,7 @@ class LineSearch(eqx.Module):
             lam=lam,
             B=jnp.eye(a0.shape[0], dtype=f),
             mu=jnp.asarray(0.0, f),
+            cap=PenaltyCap.none(),
             d=zero,
             dlam=jnp.zeros_like(lam),
             alpha=jnp.asarray(1.0, f),
@@ -214,8 +229,6 @@ class LineSearch(eqx.Module):
             capped = d_max > state.radius
             cut = jnp.where(capped, state.radius / jnp.where(capped, d_max, 1.0), 1.0)
             d = d * cut
-            # the penalty carries over unless it ran past `mu_max` (see docs/solvers/kalman-sqp.md)
-            mu = jnp.where(state.mu > self.mu_max, 0.0, state.mu)
             base = sqp.release_inactive(ev, lam)
             # Without inequality rows the QP has no box (`KalmanSQP.direction`): its step and
             # multipliers are the unbounded QP's, and the multipliers' step is cut with d, as
@@ -227,13 +240,21 @@ class LineSearch(eqx.Module):
             # random-problem oracle STALLED).
             if inequality_rows(ev) is None:
                 lam_qp = base + cut * (lam_qp - base)
-            return (d, base, *self.start(sqp, ev, base, mu, B, d, lam_qp))
+            return (d, base, *self.start(sqp, ev, base, carried, B, d, lam_qp))
 
         # A fresh direction (no integration) unless a search is pending; if B's step is no
         # descent direction for the merit (B degenerated, or the knot ordering bent the step),
         # once more from a scaled identity. A loop of at most two rounds, so that the QP is
         # compiled once; under vmap a lane whose loop ended keeps its result.
         fresh = ~state.searching
+        # the penalty carries over, capped near feasibility (`mu_max`, `cap_progress`); never
+        # at an acceptable point (`_kkt.kkt_outcome`)
+        rows = ev.H if inequality_rows(ev) is None else active_rows(ev, sqp.path_active)
+        viol = violation_of(ev)
+        eligible = fresh & ~far_from_feasible(ev, a, FAR) & (state.streak == 0)
+        carried, cap = state.cap.carried(
+            state.mu, natural_scale(state.B, rows), viol, ev.G, eligible, self.mu_max, self.cap_progress
+        )
         B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
 
         def round_(carry):
@@ -253,6 +274,7 @@ class LineSearch(eqx.Module):
         pick = lambda new, old: jnp.where(fresh, new, old)
         d, dlam, lam = pick(d_new, state.d), pick(dlam_new, state.dlam), pick(lam_new, lam)
         mu, phi0, dphi0 = pick(mu_new, state.mu), pick(phi0_new, state.phi0), pick(dphi0_new, state.dphi0)
+        raised = fresh & (mu_new > carried)
         alpha = jnp.where(fresh, 1.0, state.alpha)
 
         # one integration: the candidate (the first step's is the start, weighed with its
@@ -365,6 +387,7 @@ class LineSearch(eqx.Module):
             lam=new_lam,
             B=jnp.where(accept, B_acc, B),
             mu=mu,
+            cap=state.cap.update(cap, viol, ev.G, raised),
             d=d,
             dlam=dlam,
             alpha=jnp.where(accept, 1.0, alpha_next),

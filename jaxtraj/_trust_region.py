@@ -39,6 +39,7 @@ from ._kkt import (
     with_knot_gaps,
     without_scale,
 )
+from ._penalty import PenaltyCap, far_from_feasible, natural_scale, violation, violation_of
 from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian
 from ._solution import History
 from ._status import Status, failed
@@ -249,9 +250,7 @@ class TRState(eqx.Module):
     W: jax.Array  # Hessian of the Lagrangian at a
     radius: jax.Array
     mu: jax.Array  # merit penalty
-    cap_ref: jax.Array  # the violation where the penalty was last capped (`TrustRegion.mu_max`)
-    cap_objective: jax.Array  # the objective there
-    raised: jax.Array  # whether a step has raised the penalty since that cap
+    cap: PenaltyCap  # where the penalty was last capped (`TrustRegion.mu_max`)
     streak: jax.Array  # steps in a row at an acceptable point (`_kkt.kkt_outcome`)
     d: jax.Array  # the step of the pending second-order correction
     d_soc: jax.Array
@@ -275,15 +274,6 @@ def _model(ev: Evaluation, lam, mu, d, B):
     return merit_value(ev.G + ev.G_a @ d + 0.5 * d @ B @ d, ev.E + ev.H @ d, C, lam, mu)
 
 
-def _violation(E, C):
-    return 0.5 * (E @ E) + (0.0 if C is None else 0.5 * jnp.sum(jnp.maximum(C, 0.0) ** 2))
-
-
-def _violation_of(ev: Evaluation):
-    rows = inequality_rows(ev)
-    return _violation(ev.E, None if rows is None else rows[0])
-
-
 def _penalty(ev: Evaluation, lam, mu, d, B):
     """The smallest penalty >= `mu` (never lowered) with a predicted merit decrease of at
     least 0.3 mu x the linearized decrease of the violation |E|^2/2 + |max(C, 0)|^2/2, where
@@ -291,7 +281,7 @@ def _penalty(ev: Evaluation, lam, mu, d, B):
     where the predicted decrease is affine in mu), with a relative margin of 1e-4."""
     rows = inequality_rows(ev)
     C, C_d = (None, None) if rows is None else (rows[0], rows[0] + rows[1] @ d)
-    linear = _violation(ev.E, C) - _violation(ev.E + ev.H @ d, C_d)
+    linear = violation(ev.E, C) - violation(ev.E + ev.H @ d, C_d)
     excess = lambda mu: merit(ev, lam, mu) - _model(ev, lam, mu, d, B) - 0.3 * mu * linear
 
     def newton(_, mu):
@@ -318,9 +308,7 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
         W=jnp.zeros((a0.shape[0], a0.shape[0]), f),
         radius=jnp.asarray(tr.radius, f),
         mu=jnp.asarray(0.0, f),
-        cap_ref=jnp.asarray(jnp.inf, f),
-        cap_objective=jnp.asarray(jnp.inf, f),
-        raised=jnp.array(False),
+        cap=PenaltyCap.none(),
         streak=jnp.array(0, jnp.int32),
         d=zero,
         d_soc=zero,
@@ -347,7 +335,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     with_rows = inequality_rows(ev) is not None
     # far from feasible: the linearized constraints ask for a relative change of the
     # parameters of at least `feasibility_first` (docs/solvers/kalman-sqp.md)
-    far = jnp.linalg.norm(ev.E) > tr.feasibility_first * jnp.linalg.norm(ev.H) * jnp.linalg.norm(a)
+    far = far_from_feasible(ev, a, tr.feasibility_first)
 
     # a new step (no integration); only where no correction is pending
     if with_rows:
@@ -380,14 +368,12 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     d = jnp.where(fresh, without_scale(d, a, scale_free(ev, a, W, state.lam)), d)  # (`scale_free`)
     # the penalty carries over; near feasibility it is capped at `mu_max` x its natural scale,
     # once the violation has halved since the last cap, or where no step has raised it since
-    # and the objective has fallen by `cap_progress` (`TrustRegion`)
-    rows = A if with_rows else ev.H
-    natural = jnp.linalg.norm(W) / jnp.maximum(jnp.linalg.norm(rows) ** 2, 1e-300)
-    viol = _violation_of(ev)
-    progressed = ~state.raised & (ev.G <= state.cap_objective - tr.cap_progress * (1.0 + jnp.abs(state.cap_objective)))
-    cap = fresh & ~far & (progressed | (viol <= 0.5 * state.cap_ref)) & (state.mu > tr.mu_max * natural)
-    cap = cap & (state.streak == 0)  # never at an acceptable point (`_kkt.kkt_outcome`)
-    carried = jnp.where(cap, tr.mu_max * natural, state.mu)
+    # and the objective has fallen by `cap_progress` (`TrustRegion`); never at an acceptable
+    # point (`_kkt.kkt_outcome`)
+    natural = natural_scale(W, A if with_rows else ev.H)
+    viol = violation_of(ev)
+    eligible = fresh & ~far & (state.streak == 0)
+    carried, cap = state.cap.carried(state.mu, natural, viol, ev.G, eligible, tr.mu_max, tr.cap_progress)
     mu_new = _penalty(ev, lam, carried, d, B)
     raised = fresh & (mu_new > carried)
     mu = jnp.where(fresh, mu_new, state.mu)
@@ -500,9 +486,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         W=new_W,
         radius=radius,
         mu=mu,
-        cap_ref=jnp.where(cap, viol, state.cap_ref),
-        cap_objective=jnp.where(cap, ev.G, state.cap_objective),
-        raised=jnp.where(cap, raised, state.raised | raised),
+        cap=state.cap.update(cap, viol, ev.G, raised),
         streak=streak,
         d=d,
         d_soc=jnp.where(jnp.all(jnp.isfinite(d_soc)), d_soc, 0.0),
