@@ -280,6 +280,9 @@ def _simulate(problem, control, a, simulator):
     grid = jnp.asarray(simulator.dense_grid())
     h = knots[1:] - knots[:-1]
     t = knots[:-1, None] + h[:, None] * grid[None, :]
+    # each segment ends at its knot exactly (t_k + h_k rounds past t_{k+1} by an ulp: the
+    # times went backwards there, and `jt.io.load` refused the saved result)
+    t = t.at[:, -1].set(knots[1:])
     ks = jnp.broadcast_to(jnp.arange(K)[:, None], t.shape)
     taus = jnp.broadcast_to(grid[None, :], t.shape)
     u = jax.vmap(jax.vmap(lambda k, tau: control.segment_control(a, k, tau)))(ks, taus)

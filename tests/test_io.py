@@ -399,3 +399,22 @@ def test_arguments_of_the_wrong_type_are_named(result, tmp_path):
         jt.io.save(tmp_path, "prob", sol, traj)
     with pytest.raises(ValueError, match=r"`folder` must be a path .*got NoneType"):
         jt.io.load(None)
+
+
+def test_a_trajectory_whose_segment_ends_round_past_the_next_knot_loads(result, tmp_path):
+    """Issue 51's fourth audit: t_k + h_k rounded an ulp past t_{k+1} (10 segments to tf =
+    0.3), so a dense trajectory went backwards there and `load` refused the folder `jaxtraj
+    solve` had just written ("its times are out of order"). Segments end at their knots
+    exactly now; a folder saved before that loads."""
+    ctrl = jt.controls.PiecewiseLinear(10)
+    traj = jt.simulate(PROB, ctrl, ctrl.initial_guess(0.3, 0.0, 0.0))
+    t = np.asarray(traj.t)
+    assert np.all(np.diff(t) >= 0)
+    ends = t.reshape(10, -1)
+    assert np.array_equal(ends[:, -1], np.asarray(traj.knots)[1:]) and np.array_equal(ends[:, 0], traj.knots[:-1])
+    sol, traj = result
+    t = np.asarray(traj.t).copy()
+    per = t.size // CTRL.num_segments
+    t[per - 1] = np.nextafter(t[per], np.inf)  # an older save: segment 0 ends an ulp past t_1
+    jt.io.save(tmp_path, PROB, sol, eqx.tree_at(lambda tr: tr.t, traj, jnp.asarray(t)))
+    assert np.array_equal(np.asarray(jt.io.load(tmp_path)[1].t), t)
