@@ -125,14 +125,15 @@ def traced_bounds(problem: Problem) -> bool:
     return any(isinstance(value, jax.core.Tracer) for _, value, _ in _bounds_and_boxes(problem))
 
 
-def check_inputs(problem: Problem, control: AbstractControl, a):
-    """Outside-jit checks of the public entry points; returns `a` as a float64 array."""
+def check_inputs(problem: Problem, control: AbstractControl, a, *, zero_tf: bool = False):
+    """Outside-jit checks of the public entry points; returns `a` as a float64 array
+    (`zero_tf`: see `AbstractControl.validate`)."""
     check_problem_and_control(problem, control)
     if isinstance(a, jax.core.Tracer):
         if a.shape != (control.num_params,):
             raise ValueError(f"`a` must have shape ({control.num_params},) for {control!r}; got {a.shape}.")
         return a.astype(jnp.float64)
-    return jnp.asarray(control.validate(a))
+    return jnp.asarray(control.validate(a, zero_tf=zero_tf))
 
 
 def memory_limit() -> int:

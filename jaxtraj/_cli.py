@@ -553,7 +553,13 @@ def _solve(args):
                 jt.solve(prob, ctrl, start, solver, simulator=sim, max_steps=args.max_steps, progress=100)
             )
         second = time.perf_counter() - t0
-    traj = jt.simulate(prob, ctrl, best.params, simulator=sim)
+    try:
+        traj = jt.simulate(prob, ctrl, best.params, simulator=sim)
+    except ValueError as e:  # (parameters a solver ended at that jt.simulate refuses: no traceback)
+        raise _UsageError(
+            f"{args.problem}: the solve ended {jt.status_name(best.status)} at parameters that cannot be "
+            f"simulated: {str(e).splitlines()[0]}"
+        ) from None
 
     rows = [
         ("status", jt.status_name(best.status)),

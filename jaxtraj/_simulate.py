@@ -311,9 +311,12 @@ def simulate(problem: Problem, control: AbstractControl, a, *, simulator: Abstra
     compiled code serves every value of `a`.
 
     **Raises:** `ValueError` for a parameter vector of the wrong length, non-finite
-    entries, or times out of order (checked on concrete input, outside jit).
+    entries, or times out of order (checked on concrete input, outside jit). A final time
+    of 0 (every segment collapsed, where a solver may end) gives a trajectory that stays at x0.
     """
-    a = check_inputs(problem, control, a)
+    # (tf = 0: a solver's result with every segment collapsed, e.g. from a start at tf =
+    # 1e-300; refused, `jaxtraj solve` died before writing the finished solve)
+    a = check_inputs(problem, control, a, zero_tf=True)
     check_simulator(simulator)
     points = control.num_segments * simulator.num_dense()
     check_memory(

@@ -81,3 +81,20 @@ def test_simulate_jit_vmap_match_single_calls():
     batched = jax.jit(jax.vmap(lambda a: jt.simulate(prob, ctrl, a).xf))(a0s)
     for i in range(4):
         np.testing.assert_allclose(batched[i], jt.simulate(prob, ctrl, a0s[i]).xf, rtol=1e-14)
+
+
+def test_a_collapsed_final_time_simulates_but_starts_nothing():
+    """Issue 51's fourth audit: a solve from tf = 1e-300 ends STALLED at tf = 0 (every knot
+    gap at its bound h_k >= 0); `jt.simulate` refused that result, so `jaxtraj solve` died
+    with a traceback before writing it. It simulates (time stands still at x0); as
+    a start, tf = 0 is still refused."""
+    prob = jt.problems.analytic.double_integrator()
+    ctrl = jt.controls.PiecewiseLinear(3)
+    a = jnp.asarray([1.0, 0.5, 0.0, -1.0, 0.0])
+    traj = jt.simulate(prob, ctrl, a)
+    assert traj.status == jt.Status.SUCCESS
+    assert np.all(np.asarray(traj.t) == 0) and np.all(np.asarray(traj.x) == np.asarray(prob.x0))
+    with pytest.raises(ValueError, match=r"the final time tf must be > 0"):
+        jt.solve(prob, ctrl, a)
+    with pytest.raises(ValueError, match=r"the final time tf must be > 0"):
+        jt.simulate(prob, ctrl, a.at[-1].set(-1e-3))

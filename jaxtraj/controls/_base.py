@@ -119,8 +119,10 @@ class AbstractControl(eqx.Module):
         u = jax.vmap(lambda kk, tt: self.segment_control(a, kk, tt))(flat_k, flat_tau)
         return u.reshape((*t.shape, self.num_controls))
 
-    def validate(self, a) -> np.ndarray:
+    def validate(self, a, *, zero_tf: bool = False) -> np.ndarray:
         """Check a concrete parameter vector outside jit; return it as float64 numpy.
+        `zero_tf=True` accepts tf = 0 (every segment collapsed: a point a solver may end at,
+        which `jt.simulate` shows as a trajectory that stays at x0); a start needs tf > 0.
 
         **Raises:** `ValueError` naming the argument, what was expected and what was received.
         """
@@ -138,7 +140,7 @@ class AbstractControl(eqx.Module):
             )
         self._check_values(arr)
         knots = self.concrete_knots(arr)
-        if not knots[-1] > 0:
+        if not (knots[-1] > 0 or (zero_tf and knots[-1] == 0)):
             raise ValueError(f"`a`: the final time tf must be > 0 for {name}; got tf = {knots[-1]}.")
         return arr
 
