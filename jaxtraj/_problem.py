@@ -257,6 +257,12 @@ class Problem(eqx.Module):
         self.path_names = _names(path_names, "path_names")
         self.terminal_inequality = terminal_inequality
         self.terminal_inequality_names = _names(terminal_inequality_names, "terminal_inequality_names")
+        for names, fname, fn in (
+            ("path_names", "path", path),
+            ("terminal_inequality_names", "terminal_inequality", terminal_inequality),
+        ):
+            if fn is None and getattr(self, names):  # (a declared row without its function: ignored)
+                raise ValueError(f"`{names}` names the rows of `{fname}`, which is None; got {getattr(self, names)!r}.")
         if not isinstance(name, str):
             raise ValueError(f"`name` must be a str; got {type(name).__name__}.")
         self._label = _Label(name)
@@ -268,6 +274,17 @@ class Problem(eqx.Module):
             self._add_tf_bounds(tf_bounds)
         if running_cost is not None:
             self._add_running_cost(running_cost)
+        # a user's name that is also one jt.Problem gives a row it adds: one would hide the
+        # other in reports, and a saved result (rows by name) would not load
+        for field, added in (
+            ("path_names", "the rows of `state_lower` / `state_upper`"),
+            ("terminal_inequality_names", "the rows of `tf_bounds`"),
+            ("state_names", "the accumulated `running_cost`"),
+        ):
+            names = getattr(self, field)
+            repeated = sorted({v for v in names if names.count(v) > 1})
+            if repeated:
+                raise ValueError(f"`{field}`: {repeated} is also the name jt.Problem gives {added}; rename yours.")
 
     @property
     def name(self) -> str:

@@ -199,6 +199,30 @@ def _energy_problem(**kwargs):
         # a repeated name hid one row in saved results, which then did not load (issue 51)
         ({"names": ("p", "p")}, r"`constraint_names` must name each row once; \['p'\] repeat"),
         ({"control_names": ("a", "b")}, r"`control_names` must have 1 entries .*got 2"),
+        # names without their function were accepted and ignored, or named the tf_bounds'
+        # rows one off; a name that jt.Problem also gives a row it adds made a saved result
+        # that did not load (issue 51, fourth audit)
+        ({"path_names": ("speed",)}, r"`path_names` names the rows of `path`, which is None"),
+        (
+            {"terminal_inequality_names": ("late",), "tf_bounds": (0.5, 2.0)},
+            r"`terminal_inequality_names` names the rows of `terminal_inequality`, which is None",
+        ),
+        (
+            {"path": lambda t, x, u, a: x[1:2] - 2.0, "path_names": ("x2 upper bound",), "state_upper": 1.5},
+            r"`path_names`: \['x2 upper bound'\] is also the name jt.Problem gives the rows of `state_lower`",
+        ),
+        (
+            {
+                "terminal_inequality": lambda tf, xf, a: jnp.stack([tf - 5.0]),
+                "terminal_inequality_names": ("tf upper bound",),
+                "tf_bounds": (0.1, 4.0),
+            },
+            r"`terminal_inequality_names`: \['tf upper bound'\] is also the name jt.Problem gives the rows of `tf_b",
+        ),
+        (
+            {"state_names": ("running cost", "v", "e"), "running_cost": lambda t, x, u, a: u[0] ** 2},
+            r"`state_names`: \['running cost'\] is also the name jt.Problem gives the accumulated `running_cost`",
+        ),
     ],
 )
 def test_problem_arguments_are_checked(kwargs, message):
