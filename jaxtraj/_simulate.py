@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._checks import check_inputs, check_memory, check_problem_and_control, memory_refusal
+from ._checks import check_inputs, check_memory, check_problem_and_control, is_count, memory_refusal
 from ._problem import Problem
 from ._status import Status, as_indexable
 from .controls import AbstractControl
@@ -156,11 +156,26 @@ class Diffrax(AbstractSimulator):
     dense_points: int = 101
 
     def __check_init__(self):
-        if not (self.rtol > 0 and self.atol > 0):
-            raise ValueError(f"`rtol` and `atol` must be > 0; got rtol={self.rtol}, atol={self.atol}.")
-        if not (isinstance(self.max_steps, int) and self.max_steps >= 1):
+        # (a solver without an error estimate, or no solver, failed inside diffrax at the
+        # first simulation; a text, NaN or infinite tolerance, a bool count: issue 51)
+        if not isinstance(self.solver, diffrax.AbstractAdaptiveSolver):
+            raise ValueError(
+                "`solver` must be a diffrax solver with an error estimate (adaptive steps, e.g. "
+                f"diffrax.Tsit5()); got {self.solver!r}."
+            )
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            try:
+                number = np.nan if isinstance(value, bool | str) else float(value)
+            except (TypeError, ValueError):
+                number = np.nan
+            if not 0 < number < np.inf:
+                raise ValueError(f"`{name}` must be a finite number > 0; got {value!r}.")
+        if not is_count(self.max_steps, 1):
             raise ValueError(f"`max_steps` must be an int >= 1; got {self.max_steps!r}.")
-        if not (isinstance(self.dense_points, int) and self.dense_points >= 2):
+        if not (
+            isinstance(self.dense_points, int) and not isinstance(self.dense_points, bool) and self.dense_points >= 2
+        ):
             raise ValueError(f"`dense_points` must be an int >= 2; got {self.dense_points!r}.")
 
     def integrate(self, field, y0, dense):

@@ -114,6 +114,35 @@ def test_bad_bounds_method_simulator_and_guess():
         jt.problems.earth_mars.thesis_case(8)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        # a solver without an error estimate, or a name for one, failed inside diffrax at the
+        # first simulation; a text tolerance gave Python's comparison error, an infinite one
+        # was taken (issue 51, fourth audit)
+        ({"solver": "tsit5"}, r"`solver` must be a diffrax solver with an error estimate .*got 'tsit5'"),
+        ({"solver": None}, r"`solver` must be a diffrax solver with an error estimate"),
+        ({"rtol": "1e-8"}, r"`rtol` must be a finite number > 0; got '1e-8'"),
+        ({"atol": np.inf}, r"`atol` must be a finite number > 0; got inf"),
+        ({"rtol": np.nan}, r"`rtol` must be a finite number > 0; got nan"),
+        ({"max_steps": True}, r"`max_steps` must be an int >= 1; got True"),
+        ({"max_steps": 2**40}, r"`max_steps` must be an int >= 1; got 1099511627776"),
+        ({"dense_points": True}, r"`dense_points` must be an int >= 2; got True"),
+    ],
+)
+def test_diffrax_settings_are_checked_when_made(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        jt.Diffrax(**kwargs)
+    assert jt.Diffrax(rtol=np.float64(1e-8), atol=jnp.asarray(1e-9)).rtol == 1e-8
+
+
+def test_a_diffrax_solver_without_error_estimate_is_refused_when_made():
+    import diffrax
+
+    with pytest.raises(ValueError, match=r"`solver` must be a diffrax solver with an error estimate .*Euler"):
+        jt.Diffrax(diffrax.Euler())
+
+
 def test_bad_problem_definitions():
     with pytest.raises(ValueError, match=r"`dynamics\(t, x, u, args\)` must return an array of shape \(3,\)"):
         jt.Problem(lambda t, x, u, args: x[:2], [0.0, 1.0, 1.0], lambda tf, xf, args: xf, ("a", "b", "c"))
