@@ -675,6 +675,8 @@ def test_monte_carlo_noise_is_checked(noise, message):
     for key, text in (
         (2**70, r"`key` as an int seed must be in 0\.\.2\*\*64 - 1"),
         ("k", r"`key` must be a JAX PRNG key"),
+        # None gave JAX's "unexpected PRNG key type" from inside the runs (issue 51, fourth audit)
+        (None, r"`key` must be a JAX PRNG key .*got None"),
     ):
         with pytest.raises(ValueError, match=text):
             monte_carlo(prob, _DI_CTRL, _DI_PARAMS, key, 4, simulator=_DI_SIM, **noise)
@@ -685,3 +687,16 @@ def test_monte_carlo_noise_is_checked(noise, message):
     one_finite = np.array([True, False, False])
     _, cov, _ = masked_stats(jnp.ones((3, 2)), jnp.asarray(one_finite), jnp.array([50.0]))
     assert np.all(np.isnan(np.asarray(cov)))
+
+
+def test_closed_loop_and_monte_carlo_name_what_jax_would_not():
+    """Issue 51's fourth audit: `simulate_closed_loop(key=None)` dropped declared noise
+    without a word, and a text or None `correlation_time` gave JAX's messages."""
+    prob = _linear_problem(_DI_A, _DI_B)
+    with pytest.raises(ValueError, match=r"`key` is None .*`initial_covariance` declare\(s\) noise"):
+        simulate_closed_loop(prob, _DI_CTRL, _DI_PARAMS, None, initial_covariance=np.eye(2), simulator=_DI_SIM)
+    quiet = simulate_closed_loop(prob, _DI_CTRL, _DI_PARAMS, None, simulator=_DI_SIM)  # (no noise: as before)
+    assert np.all(np.isfinite(np.asarray(quiet.x)))
+    for value in ("x", None):
+        with pytest.raises(ValueError, match=r"`correlation_time` must be a number >= 0"):
+            monte_carlo(prob, _DI_CTRL, _DI_PARAMS, 0, 4, simulator=_DI_SIM, correlation_time=value)

@@ -29,7 +29,12 @@ def _psd_sqrt(name, M, n):
 
 def _noise_model(problem, execution, process_noise, initial_covariance, correlation_time):
     execution = check_execution(execution, problem)
-    c = as_float64(correlation_time)
+    try:
+        c = as_float64(correlation_time)
+    except (TypeError, ValueError):  # (JAX's message named no argument)
+        raise ValueError(
+            f"`correlation_time` must be a number >= 0 (0: white, inf: bias); got {correlation_time!r}."
+        ) from None
     if c.ndim != 0:
         raise ValueError(f"`correlation_time` must be a scalar; got shape {c.shape}.")
     if not isinstance(c, jax.core.Tracer) and not bool(c >= 0):
@@ -95,12 +100,26 @@ def simulate_closed_loop(
     simulator=RK4(),
 ) -> ClosedLoopTrajectory:
     """One run of u = u_ref(t) - K_k (x_k - x_ref_k) with noise; see `monte_carlo` for the
-    model and the arguments. `key=None` runs without noise. Pure and jit-compiled; vmap it
-    over keys for a batch (or use `monte_carlo`)."""
+    model and the arguments. `key=None` runs without noise (declared noise is then refused).
+    Pure and jit-compiled; vmap it over keys for a batch (or use `monte_carlo`)."""
     a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
     N, n, m = control.num_segments * simulator.steps, problem.num_states, problem.num_controls
     gains = check_gains(gains, N, m, n)
+    declared = [
+        name
+        for name, value in (
+            ("execution", execution),
+            ("process_noise", process_noise),
+            ("initial_covariance", initial_covariance),
+        )
+        if value is not None
+    ]
+    if key is None and declared:  # (the noise was dropped without a word)
+        raise ValueError(
+            f"`key` is None (a run without noise), but {', '.join(f'`{d}`' for d in declared)} "
+            "declare(s) noise: pass a key (jax.random.key(seed)) to draw it, or leave the noise out."
+        )
     noise = _noise_model(problem, execution, process_noise, initial_covariance, correlation_time)
     return _closed_loop(problem, control, a, _as_key(key), gains, noise, simulator.steps)
 
@@ -255,6 +274,8 @@ def monte_carlo(
     """
     a = check_inputs(problem, control, a)
     check_simulator_rk4(simulator)
+    if key is None:  # (JAX's TypeError deep inside the runs)
+        raise ValueError("`key` must be a JAX PRNG key (jax.random.key(seed)) or an int seed; got None.")
     if not (isinstance(n, int) and not isinstance(n, bool) and n >= 2):
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
     if not (isinstance(first_run, int | np.integer) and not isinstance(first_run, bool) and 0 <= first_run):
