@@ -143,6 +143,31 @@ def test_a_diffrax_solver_without_error_estimate_is_refused_when_made():
         jt.Diffrax(diffrax.Euler())
 
 
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        # NumPy's or Python's messages, naming no argument (issue 51, fourth audit)
+        (lambda: C.PiecewiseLinear(3).initial_guess("1.0", 0.0, 0.0), r"`tf` must be a finite number > 0; got '1.0'"),
+        (lambda: C.PiecewiseLinear(3).initial_guess(None, 0.0, 0.0), r"`tf` must be a finite number > 0; got None"),
+        (lambda: C.PiecewiseConstant(3).initial_guess(np.ones(2), 0.0, 0.0), r"`tf` must be a finite number > 0"),
+        (
+            lambda: C.PiecewiseLinear(3).initial_guess(1.0, [0.0, 1.0, 2.0], 0.0),
+            r"`u_start` and `u_end` must each be a finite number or 1 \(one per channel\); got \[0\.0, 1\.0, 2\.0\]",
+        ),
+        (lambda: C.PiecewiseParabolic(2).initial_guess(1.0, "a", 0.0), r"`u_start` and `u_end` must each be"),
+        (lambda: C.PiecewiseLinear(2).initial_guess(1.0, 0.0, np.nan), r"`u_start` and `u_end` must each be"),
+        (lambda: C.SaturatedSpline(3, 1, [-1.0, -1.0], [1.0, 1.0, 1.0]), r"`lower`/`upper` must have one entry per"),
+        (lambda: C.SaturatedSpline(3, 1, "a", 1.0), r"`lower`/`upper` must be numbers, one per channel; got 'a'"),
+        # another length was evaluated as this family's entries, silently
+        (lambda: C.PiecewiseLinear(3)(jnp.ones(7), 0.5), r"`a` must have shape \(5,\) .*got shape \(7,\)"),
+    ],
+)
+def test_control_helpers_name_the_argument(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+    assert C.PiecewiseLinear(3).initial_guess(np.float64(1.0), jnp.asarray(0.5), [0.0])[-1] == 1.0
+
+
 def test_bad_problem_definitions():
     with pytest.raises(ValueError, match=r"`dynamics\(t, x, u, args\)` must return an array of shape \(3,\)"):
         jt.Problem(lambda t, x, u, args: x[:2], [0.0, 1.0, 1.0], lambda tf, xf, args: xf, ("a", "b", "c"))

@@ -110,6 +110,8 @@ class AbstractControl(eqx.Module):
         """u(a, t) for scalar or array `t` in [0, tf]; right-continuous at knots, u(tf) is
         the left limit. Returns shape `t.shape + (num_controls,)`."""
         a = jnp.asarray(a)
+        if a.shape != (self.num_params,):  # (static: another length evaluated other entries, silently)
+            raise ValueError(f"`a` must have shape ({self.num_params},) for {self!r}; got shape {a.shape}.")
         knots = self.knots(a)
         t = jnp.asarray(t, dtype=knots.dtype)
         k = jnp.clip(jnp.searchsorted(knots, t, side="right") - 1, 0, self.num_segments - 1)

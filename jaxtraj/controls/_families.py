@@ -30,7 +30,14 @@ def _times(tf, K):
 def _channel_line(tf, u_start, u_end, t, q):
     """The straight line at the times `t`, shape `(len(t), q)`; `u_start`, `u_end`: a number
     or one per channel."""
-    us, ue = (np.broadcast_to(np.asarray(v, dtype=np.float64), (q,)) for v in (u_start, u_end))
+    try:
+        us, ue = (np.broadcast_to(np.asarray(v, dtype=np.float64), (q,)) for v in (u_start, u_end))
+    except (TypeError, ValueError):  # (NumPy's conversion or broadcast message named neither)
+        us = ue = np.full(q, np.nan)
+    if not (np.all(np.isfinite(us)) and np.all(np.isfinite(ue))):
+        raise ValueError(
+            f"`u_start` and `u_end` must each be a finite number or {q} (one per channel); got {u_start!r}, {u_end!r}."
+        )
     with np.errstate(over="ignore", invalid="ignore"):  # (inf times: see `_times`)
         return _line(tf, us[None], ue[None], np.asarray(t)[:, None])
 
@@ -45,7 +52,11 @@ def _line(tf, u_start, u_end, t):
 
 
 def _check_guess(tf):
-    if not (np.isfinite(tf) and tf > 0):
+    try:  # (a text, None or an array gave NumPy's messages, naming no argument)
+        ok = not isinstance(tf, str | bool) and np.ndim(tf) == 0 and bool(np.isfinite(tf) and tf > 0)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
         raise ValueError(f"`tf` must be a finite number > 0; got {tf!r}.")
 
 
@@ -376,10 +387,17 @@ class SaturatedSpline(AbstractControl):
         _check_segments(segments)
         if not (isinstance(degree, int) and not isinstance(degree, bool) and 0 <= degree <= 3):
             raise ValueError(f"`degree` must be an int in 0..3; got {degree!r}.")
-        lo = np.atleast_1d(np.asarray(lower, dtype=np.float64))
-        hi = np.atleast_1d(np.asarray(upper, dtype=np.float64))
+        try:
+            lo = np.atleast_1d(np.asarray(lower, dtype=np.float64))
+            hi = np.atleast_1d(np.asarray(upper, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise ValueError(f"`lower`/`upper` must be numbers, one per channel; got {lower!r}, {upper!r}.") from None
         if lo.ndim != 1 or hi.ndim != 1:
             raise ValueError(f"`lower`/`upper` must be scalars or 1-D; got shapes {lo.shape}, {hi.shape}.")
+        if lo.shape != hi.shape and 1 not in (lo.size, hi.size):
+            raise ValueError(
+                f"`lower`/`upper` must have one entry per channel each; got shapes {lo.shape}, {hi.shape}."
+            )
         lo, hi = np.broadcast_arrays(lo, hi)
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo >= hi):
             raise ValueError(f"`lower` must be < `upper` component-wise; got lower={lo}, upper={hi}.")
