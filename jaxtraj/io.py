@@ -204,8 +204,12 @@ def save(folder, problem, sol: Solution, traj: Trajectory, *, inputs=None, extra
     the solve's simulator), `inputs` or `extra` cannot be written as JSON or `extra` names a key of the
     summary (nothing is written then), or when `folder` is a file.
     """
+    if not isinstance(folder, str | os.PathLike):  # (os' TypeError named no argument)
+        raise ValueError(f"`folder` must be a path (str or os.PathLike); got {type(folder).__name__}.")
     if not isinstance(problem, Problem):
         raise ValueError(f"`problem` must be the jt.Problem that `sol` solves; got {type(problem).__name__}.")
+    if extra is not None and not isinstance(extra, dict):
+        raise ValueError(f"`extra` must be a dict of more summary entries (or None); got {type(extra).__name__}.")
     if not isinstance(sol, Solution) or np.shape(sol.tf) != ():
         raise ValueError(f"`sol` must be one jt.Solution (a batch's `sols[i]`); got {_describe(sol)}.")
     if not isinstance(traj, Trajectory) or np.ndim(traj.knots) != 1:

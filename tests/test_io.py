@@ -399,6 +399,14 @@ def test_arguments_of_the_wrong_type_are_named(result, tmp_path):
         jt.io.save(tmp_path, "prob", sol, traj)
     with pytest.raises(ValueError, match=r"`folder` must be a path .*got NoneType"):
         jt.io.load(None)
+    # os' and dict's TypeErrors named no argument (issue 51, fourth audit)
+    with pytest.raises(ValueError, match=r"`folder` must be a path .*got int"):
+        jt.io.save(3, PROB, sol, traj)
+    with pytest.raises(ValueError, match=r"`extra` must be a dict .*got list"):
+        jt.io.save(tmp_path, PROB, sol, traj, extra=[1, 2])
+    with pytest.raises(ValueError, match=r"`out` must be None or a folder path .*got int"):
+        jt.solve_batch(PROB, CTRL, sol.params[None], simulator=SIM, out=5, progress=False)
+    assert not os.listdir(tmp_path)
 
 
 def test_a_trajectory_whose_segment_ends_round_past_the_next_knot_loads(result, tmp_path):

@@ -135,6 +135,8 @@ def solve_batch(
     if history:  # the history of every start comes back: n (N, max_steps) arrays
         check_memory("max_steps", n * max_steps * HISTORY_BYTES, f"the history of {n:,} starts x {max_steps:,} steps")
 
+    if out is not None and not isinstance(out, str | os.PathLike):  # (os' TypeError named no argument)
+        raise ValueError(f"`out` must be None or a folder path (str or os.PathLike); got {type(out).__name__}.")
     out = None if out is None else os.fspath(out)
 
     def solve_all(problem, control):
