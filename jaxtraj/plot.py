@@ -138,10 +138,27 @@ def plot_convergence(ax, sol):
     ax.set_title(f"convergence (final objective {float(sol.objective):.8g})")
 
 
+def _check_one(sol, traj):
+    """One (unbatched) `jt.Solution` and `jt.Trajectory`, or a ValueError naming the
+    argument (a batch, or None, failed deep inside NumPy, JAX or the plotting code)."""
+    from ._simulate import Trajectory
+    from ._solution import Solution
+
+    if not isinstance(sol, Solution) or np.ndim(sol.tf) != 0:
+        batch = f" with a batch axis {np.shape(sol.tf)}" if isinstance(sol, Solution) else ""
+        raise ValueError(f"`sol` must be one jt.Solution (a batch's `sols[i]`); got {type(sol).__name__}{batch}.")
+    if not isinstance(traj, Trajectory) or np.ndim(traj.knots) != 1:
+        batch = f" with a batch axis {np.shape(traj.knots)[:-1]}" if isinstance(traj, Trajectory) else ""
+        raise ValueError(
+            f"`traj` must be one jt.Trajectory (jt.simulate of `sol.params`); got {type(traj).__name__}{batch}."
+        )
+
+
 def solution_figure(problem, control, sol, traj, path, *, title=None, r_target=None):
     """A 2x2 overview: control history, states, convergence history, and (for orbit
     transfers, when `r_target` is given) the trajectory in the orbital plane, its state
     layout taken from `problem` (`orbit_layout`)."""
+    _check_one(sol, traj)
     plt = pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     plot_controls(axes[0, 0], problem, traj)
@@ -166,6 +183,7 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
     `orbit_layout`), `orbit.png`. Returns the file names written."""
     import os
 
+    _check_one(sol, traj)
     plt = pyplot()
     names = ["solution.png"]
     solution_figure(problem, control, sol, traj, os.path.join(folder, "solution.png"), title=title, r_target=r_target)
@@ -197,9 +215,15 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
 def batch_figure(path, problem, objectives, success, trajectories, *, title=None):
     """Multi-start overview: histogram of the final objectives of the successful starts, and
     the control histories of (up to 50 of) them overlaid. `trajectories`: `jt.Trajectory`s."""
+    objectives, success = np.asarray(objectives), np.asarray(success)
+    if objectives.ndim != 1 or success.shape != objectives.shape or success.dtype != bool:
+        raise ValueError(
+            f"`objectives` and `success` must be one value and one bool per start; got {objectives.dtype} "
+            f"{objectives.shape} and {success.dtype} {success.shape}."
+        )
     plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
-    obj = np.asarray(objectives)[np.asarray(success)]
+    obj = objectives[success]
     if obj.size:
         ax1.hist(obj, bins=min(40, max(5, obj.size // 3)), color="C0", alpha=0.8)
     ax1.set(

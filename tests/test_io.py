@@ -426,3 +426,19 @@ def test_a_trajectory_whose_segment_ends_round_past_the_next_knot_loads(result, 
     t[per - 1] = np.nextafter(t[per], np.inf)  # an older save: segment 0 ends an ulp past t_1
     jt.io.save(tmp_path, PROB, sol, eqx.tree_at(lambda tr: tr.t, traj, jnp.asarray(t)))
     assert np.array_equal(np.asarray(jt.io.load(tmp_path)[1].t), t)
+
+
+def test_figures_name_a_batch_or_a_missing_trajectory(result, tmp_path):
+    """Issue 51's fourth audit: a batched solution, no trajectory or one success flag short
+    failed deep inside JAX, NumPy or the plotting code."""
+    import jaxtraj.plot
+
+    sol, traj = result
+    batch = jax.tree.map(lambda x: x[None], sol)
+    with pytest.raises(ValueError, match=r"`sol` must be one jt.Solution .*with a batch axis \(1,\)"):
+        jaxtraj.plot.write_figures(tmp_path, PROB, CTRL, batch, traj)
+    with pytest.raises(ValueError, match=r"`traj` must be one jt.Trajectory .*got NoneType"):
+        jaxtraj.plot.solution_figure(PROB, CTRL, sol, None, tmp_path / "x.png")
+    with pytest.raises(ValueError, match=r"`objectives` and `success` must be one value and one bool per start"):
+        jaxtraj.plot.batch_figure(tmp_path / "b.png", PROB, np.ones(3), np.ones(2, bool), [])
+    assert not os.listdir(tmp_path)
