@@ -32,9 +32,13 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | N
       `$XDG_CACHE_HOME/jaxtraj/xla` (`~/.cache/jaxtraj/xla`).
 
     **Returns:** the folder, or None if it cannot be created (nothing is changed then).
+
+    **Raises:** `ValueError` when `folder` is neither None nor a path.
     """
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or default_cache_folder()  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
+    if not isinstance(folder, str | os.PathLike):  # (os' TypeError named no argument)
+        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
     folder = os.fspath(folder)
     try:
         os.makedirs(folder, exist_ok=True)

@@ -523,7 +523,10 @@ def minimize(
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
         raise ValueError(f"`max_iterations` must be an int >= 1; got {max_iterations!r}.")
     if target is not None:
-        target = jnp.asarray(target, dtype=jnp.float64)
+        try:
+            target = jnp.asarray(target, dtype=jnp.float64)
+        except (TypeError, ValueError):  # (JAX's message named no argument)
+            raise ValueError(f"`target` must be None or a real scalar; got {target!r}.") from None
         if target.shape != () or (not isinstance(target, jax.core.Tracer) and bool(jnp.isnan(target))):
             raise ValueError(f"`target` must be None or a real scalar; got {target!r}.")
     return _run(optimizer, fn, lower, upper, key, max_iterations, target)

@@ -415,3 +415,11 @@ def test_gtol_above_acceptable_gtol_names_both():
     with pytest.raises(ValueError, match=r"`gtol` = 1e-05 must be <= `acceptable_gtol` = 1e-06"):
         jt.KalmanSQP(gtol=1e-5)
     assert jt.KalmanSQP(gtol=1e-5, acceptable_gtol=1e-5).gtol == 1e-5
+
+
+def test_compilation_cache_folder_of_the_wrong_type_is_named():
+    """Issue 51's fourth audit: os' TypeError named no argument; nothing changes."""
+    before = jax.config.jax_compilation_cache_dir
+    with pytest.raises(ValueError, match=r"`folder` must be None or a path .*got int"):
+        jt.enable_compilation_cache(5)
+    assert jax.config.jax_compilation_cache_dir == before

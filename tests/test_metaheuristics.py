@@ -257,6 +257,7 @@ def test_bad_bounds_and_arguments():
         (dict(max_iterations=10.0), r"`max_iterations` must be an int >= 1"),
         (dict(target=jnp.array([1.0, 2.0])), r"`target` must be None or a real scalar"),
         (dict(target=float("nan")), r"`target` must be None or a real scalar"),
+        (dict(target="x"), r"`target` must be None or a real scalar; got 'x'"),  # (JAX's message, issue 51)
         (dict(optimizer=jt.KalmanSearch()), r"`optimizer` must be a jaxtraj population optimizer"),
         (dict(fn=3.0), r"`fn` must be callable"),
         (dict(fn=lambda x: x), r"`fn` must return a scalar"),  # found while tracing
