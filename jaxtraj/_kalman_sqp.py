@@ -191,7 +191,8 @@ class KalmanSQP(AbstractSolver):
             "ctol": lambda: 0 < self.ctol < math.inf,  # (an infinite tolerance would promise nothing)
             "gtol": lambda: 0 < self.gtol < math.inf,
             "acceptable_gtol": lambda: self.gtol <= self.acceptable_gtol < math.inf,
-            "a_t": lambda: self.a_t >= 1,
+            "a_t": lambda: 1 <= self.a_t < math.inf,
+            "path_active": lambda: 0 < self.path_active < math.inf,
             "min_curvature": lambda: 0 < self.min_curvature < 1,
             "r_rel": lambda: 0 < self.r_rel < 1,
             "path_dependence": lambda: 0 < self.path_dependence < 1,

@@ -11,12 +11,14 @@ a second-order correction.
 (The algorithm, its history and measurements: docs/solvers/kalman-sqp.md, "Line search".)
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._checks import check_settings
+from ._checks import check_settings, is_count
 from ._driver import only_where
 from ._kkt import (
     active_rows,
@@ -124,12 +126,12 @@ class LineSearch(eqx.Module):
 
     def __check_init__(self):
         checks = {
-            "radius": lambda: self.radius > 0,
+            "radius": lambda: 0 < self.radius < math.inf,
             "armijo": lambda: 0 < self.armijo < 0.5,
             "min_step": lambda: 0 < self.min_step < 1,
-            "mu_max": lambda: self.mu_max > 0,
+            "mu_max": lambda: 0 < self.mu_max < math.inf,
             "cap_progress": lambda: 0 <= self.cap_progress < 1,
-            "flat_steps": lambda: isinstance(self.flat_steps, int) and self.flat_steps >= 1,
+            "flat_steps": lambda: is_count(self.flat_steps, 1),
         }
         check_settings("LineSearch", self, checks)
 

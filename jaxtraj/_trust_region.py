@@ -15,6 +15,8 @@ and the radius follows that ratio.
 (The algorithm, its history and measurements: docs/solvers/kalman-sqp.md, "Trust region".)
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -569,12 +571,12 @@ class TrustRegion(eqx.Module):
 
     def __check_init__(self):
         checks = {
-            "radius": lambda: self.radius > 0,
+            "radius": lambda: 0 < self.radius < math.inf,
             "zeta": lambda: 0 < self.zeta < 1,
             "gap_floor": lambda: 0 < self.gap_floor < 1,
             "eta": lambda: 0 < self.eta < 0.25,
-            "mu_max": lambda: self.mu_max > 0,
-            "cap_progress": lambda: self.cap_progress >= 0,
+            "mu_max": lambda: 0 < self.mu_max < math.inf,
+            "cap_progress": lambda: 0 <= self.cap_progress < 1,
             "feasibility_first": lambda: not isinstance(self.feasibility_first, bool) and self.feasibility_first >= 0,
         }
         check_settings("TrustRegion", self, checks)

@@ -325,10 +325,22 @@ def test_complex_parameters_are_refused():
         lambda: jt.KalmanSQP(gtol=float("inf"), acceptable_gtol=float("inf")),
         lambda: jt.AugmentedLagrangian(ctol=float("inf")),
         lambda: jt.KalmanSQP(acceptable_steps=2**70),
+        # accepted until the fourth audit (issue 51): `path_active` = "x" failed inside the
+        # solve, inf or -1 ended STALLED; `flat_steps` = 2**40 STALLED far from the optimum
+        lambda: jt.KalmanSQP(path_active="x"),
+        lambda: jt.KalmanSQP(path_active=float("inf")),
+        lambda: jt.KalmanSQP(path_active=-1.0),
+        lambda: jt.KalmanSQP(a_t=float("inf")),
+        lambda: jt.LineSearch(flat_steps=2**40),
+        lambda: jt.LineSearch(flat_steps=True),
+        lambda: jt.LineSearch(mu_max=float("inf")),
+        lambda: jt.TrustRegion(radius=float("inf")),
+        lambda: jt.TrustRegion(cap_progress=1.0),
     ],
 )
 def test_a_setting_of_the_wrong_type_names_the_field(make):
-    with pytest.raises(ValueError, match=r"invalid `(ctol|rho|gtol|armijo|eta|feasibility_first|acceptable_steps)`"):
+    fields = "ctol|rho|gtol|armijo|eta|feasibility_first|acceptable_steps|path_active|a_t|flat_steps|mu_max|radius|cap_progress"
+    with pytest.raises(ValueError, match=rf"invalid `({fields})`"):
         make()
 
 
