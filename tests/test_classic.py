@@ -407,8 +407,9 @@ def test_free_flying_robot_from_the_zero_start_and_its_round_off():
     rows). From the zero start and its round-off perturbations: SUCCESS within the entry's gap
     of the published continuous optimum, and an independent KKT check (`jt.kkt_report`) holds
     at the end point. (Its cost per iteration is measured in `benchmarks/gallery.py`.) The
-    local optimum reached moves with the start's last bits (8.01782, 8.01819 or 8.02074;
-    IPOPT 7.97519): an open defect of issue 49, not asserted away."""
+    local optimum reached moved with the start's last bits (8.01782, 8.01819 or 8.02074) until
+    session 40; now 8.01782 from the three starts under three ISA settings (`roundoff.py
+    --gallery`; IPOPT 7.97519, another local optimum)."""
     entry = CLASSIC.get("free-flying-robot")
     assert entry.start.shape == (124,)
     for start in perturbed_starts(entry.start, absolute=True):
