@@ -435,3 +435,28 @@ def test_compilation_cache_folder_of_the_wrong_type_is_named():
     with pytest.raises(ValueError, match=r"`folder` must be None or a path .*got int"):
         jt.enable_compilation_cache(5)
     assert jax.config.jax_compilation_cache_dir == before
+
+
+@pytest.mark.parametrize(
+    "make, field",
+    [
+        (lambda: C.PiecewiseLinear(3, continuous="no"), "continuous"),
+        (lambda: C.PiecewiseLinear(3, free_times=None), "free_times"),
+        (lambda: C.PiecewiseConstant(3, free_times="x"), "free_times"),
+        (lambda: C.PiecewiseParabolic(3, free_times=1), "free_times"),
+        (lambda: C.SaturatedSpline(3, 1, -1.0, 1.0, free_durations="x"), "free_durations"),
+    ],
+)
+def test_a_family_flag_must_be_a_bool(make, field):
+    """The fourth audit (issue 51): a text "no" was taken as True (a family other than the
+    one asked for, silently)."""
+    with pytest.raises(ValueError, match=rf"`{field}` must be True or False"):
+        make()
+
+
+def test_multistart_tol_must_be_a_finite_number():
+    prob = _energy_problem()
+    ctrl = C.PiecewiseLinear(3)
+    for tol in (True, float("inf")):
+        with pytest.raises(ValueError, match=r"`tol` must be a finite number >= 0"):
+            jt.multistart(prob, ctrl, jax.random.key(0), 2, around=ctrl.initial_guess(1.2, 0.0, 0.0), tol=tol)

@@ -2,6 +2,7 @@
 local optima found."""
 
 import dataclasses
+import math
 import time
 
 import equinox as eqx
@@ -260,8 +261,8 @@ def multistart(
             "`around` is required: the vector to perturb, e.g. control.initial_guess(tf, u_start, u_end) "
             "or a previous solution's params."
         )
-    if not (isinstance(tol, (int, float)) and tol >= 0):
-        raise ValueError(f"`tol` must be a number >= 0; got {tol!r}.")
+    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and 0 <= tol < math.inf):
+        raise ValueError(f"`tol` must be a finite number >= 0; got {tol!r}.")
     t0 = time.perf_counter()
     simulator = solve_batch_kwargs.get("simulator", RK4())
     starts = random_starts(problem, control, key, n, around, spread, simulator=simulator)

@@ -47,6 +47,14 @@ def _check_segments(segments, name="segments"):
         raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
 
 
+def _check_flags(family, *names):
+    """A family's True/False settings are bools (a text "no" was taken as True)."""
+    for name in names:
+        value = getattr(family, name)
+        if not isinstance(value, bool | np.bool_):
+            raise ValueError(f"`{name}` must be True or False; got {value!r}.")
+
+
 def _line(tf, u_start, u_end, t):
     return u_start + (u_end - u_start) * t / tf
 
@@ -84,6 +92,7 @@ class PiecewiseLinear(AbstractControl):
     def __check_init__(self):
         _check_segments(self.segments)
         _check_segments(self.channels, "channels")
+        _check_flags(self, "continuous", "free_times")
 
     @property
     def num_controls(self):
@@ -188,6 +197,7 @@ class PiecewiseParabolic(AbstractControl):
     def __check_init__(self):
         _check_segments(self.segments)
         _check_segments(self.channels, "channels")
+        _check_flags(self, "free_times")
 
     @property
     def num_controls(self):
@@ -275,6 +285,7 @@ class PiecewiseConstant(AbstractControl):
     def __check_init__(self):
         _check_segments(self.segments)
         _check_segments(self.channels, "channels")
+        _check_flags(self, "free_times")
 
     @property
     def num_controls(self):
@@ -385,6 +396,8 @@ class SaturatedSpline(AbstractControl):
 
     def __init__(self, segments, degree, lower, upper, free_durations=True):
         _check_segments(segments)
+        if not isinstance(free_durations, bool | np.bool_):
+            raise ValueError(f"`free_durations` must be True or False; got {free_durations!r}.")
         if not (isinstance(degree, int) and not isinstance(degree, bool) and 0 <= degree <= 3):
             raise ValueError(f"`degree` must be an int in 0..3; got {degree!r}.")
         try:
