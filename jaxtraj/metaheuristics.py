@@ -26,7 +26,7 @@ import jax.core
 import jax.numpy as jnp
 from jax import lax
 
-from ._checks import require_float64
+from ._checks import check_memory, is_count, require_float64
 from ._status import Status, as_indexable
 
 _DECAYS = ("linear", "quadratic")
@@ -177,8 +177,8 @@ def _decay(kind, state):
 
 
 def _check_population(name, population, minimum):
-    if isinstance(population, bool) or not isinstance(population, int) or population < minimum:
-        raise ValueError(f"{name}: `population` must be an int >= {minimum}; got {population!r}.")
+    if not is_count(population, minimum):  # (an int32 count in the compiled state)
+        raise ValueError(f"{name}: `population` must be an int in {minimum}..2**31 - 1; got {population!r}.")
 
 
 def _check_decay(name, decay):
@@ -520,8 +520,14 @@ def minimize(
         if bad.size:
             raise ValueError(f"`lower` must be < `upper` element-wise; fails at index {[int(i) for i in bad]}.")
     _check_key(key)
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
-        raise ValueError(f"`max_iterations` must be an int >= 1; got {max_iterations!r}.")
+    if not is_count(max_iterations, 1):
+        raise ValueError(f"`max_iterations` must be an int in 1..2**31 - 1; got {max_iterations!r}.")
+    # (refused before the work: XLA's RESOURCE_EXHAUSTED deep in JAX otherwise)
+    check_memory("max_iterations", 8 * max_iterations, f"the history of {max_iterations:,} generations")
+    population = getattr(optimizer, "population", 0)
+    check_memory(
+        "optimizer", 2 * 8 * population * lower.shape[0], f"a population of {population:,} x {lower.shape[0]:,} values"
+    )
     if target is not None:
         try:
             target = jnp.asarray(target, dtype=jnp.float64)

@@ -621,6 +621,10 @@ def test_monte_carlo_argument_errors():
         monte_carlo(*args, 10, process_noise=-np.eye(2))
     with pytest.raises(ValueError, match="`additive`"):
         monte_carlo(*args, 10, execution=ControlErrors(additive=[0.1, 0.2]))
+    # a zero shorthand given as an array is no declared error (it was refused: "not both")
+    zero = dict(sigma_thrust=jnp.asarray(0.0), sigma_pointing_deg=np.float64(0.0))
+    mc = monte_carlo(*args, 10, execution=ControlErrors(0.1), **zero)
+    assert np.all(np.isfinite(np.asarray(mc.final_states)))
 
 
 @pytest.mark.parametrize(

@@ -27,6 +27,18 @@ def _psd_sqrt(name, M, n):
     return V * jnp.sqrt(jnp.maximum(w, 0.0))[None, :]
 
 
+def _is_zero(value) -> bool:
+    """A concrete real scalar 0 (Python, NumPy or JAX; `jnp.asarray(0.0)` was taken for a
+    declared error and refused on a problem without a thrust entry)."""
+    if isinstance(value, jax.core.Tracer) or isinstance(value, bool):
+        return False
+    try:
+        v = np.asarray(value)
+    except (TypeError, ValueError):
+        return False
+    return v.shape == () and np.issubdtype(v.dtype, np.number) and not np.iscomplexobj(v) and bool(v == 0)
+
+
 def _noise_model(problem, execution, process_noise, initial_covariance, correlation_time):
     execution = check_execution(execution, problem)
     try:
@@ -280,7 +292,7 @@ def monte_carlo(
         raise ValueError(f"`n` must be an int >= 2; got {n!r}.")
     if not (isinstance(first_run, int | np.integer) and not isinstance(first_run, bool) and 0 <= first_run):
         raise ValueError(f"`first_run` must be an int >= 0; got {first_run!r}.")
-    shorthand = [not (isinstance(s, int | float) and s == 0) for s in (sigma_thrust, sigma_pointing_deg)]
+    shorthand = [not _is_zero(s) for s in (sigma_thrust, sigma_pointing_deg)]
     if any(shorthand):
         if execution is not None:
             raise ValueError("pass either `execution` or `sigma_thrust` / `sigma_pointing_deg`, not both.")
