@@ -183,7 +183,6 @@ def write_figures(folder, problem, control, sol, traj, *, title=None, r_target=N
     `orbit_layout`), `orbit.png`. Returns the file names written."""
     import os
 
-    _check_one(sol, traj)
     plt = pyplot()
     names = ["solution.png"]
     solution_figure(problem, control, sol, traj, os.path.join(folder, "solution.png"), title=title, r_target=r_target)

@@ -47,12 +47,15 @@ def _check_segments(segments, name="segments"):
         raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
 
 
+def _check_flag(name, value):
+    """A family's True/False setting is a bool (a text "no" was taken as True)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"`{name}` must be True or False; got {value!r}.")
+
+
 def _check_flags(family, *names):
-    """A family's True/False settings are bools (a text "no" was taken as True)."""
     for name in names:
-        value = getattr(family, name)
-        if not isinstance(value, bool | np.bool_):
-            raise ValueError(f"`{name}` must be True or False; got {value!r}.")
+        _check_flag(name, getattr(family, name))
 
 
 def _line(tf, u_start, u_end, t):
@@ -396,8 +399,7 @@ class SaturatedSpline(AbstractControl):
 
     def __init__(self, segments, degree, lower, upper, free_durations=True):
         _check_segments(segments)
-        if not isinstance(free_durations, bool | np.bool_):
-            raise ValueError(f"`free_durations` must be True or False; got {free_durations!r}.")
+        _check_flag("free_durations", free_durations)
         if not (isinstance(degree, int) and not isinstance(degree, bool) and 0 <= degree <= 3):
             raise ValueError(f"`degree` must be an int in 0..3; got {degree!r}.")
         try:
