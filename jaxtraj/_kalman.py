@@ -169,6 +169,7 @@ def dual_active_set(
     max_iter: int,
     num_equalities=None,
     warm: Bool[Array, " q"] | None = None,
+    pinned: Bool[Array, " q"] | None = None,
 ) -> tuple[Bool[Array, " q"], Float[Array, " q"], Float[Array, " q"]]:
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
@@ -205,6 +206,15 @@ def dual_active_set(
     is (`_warm_start`): a dual feasible start of the same method, so the same solution, in
     far fewer rounds once the active set settles (issue 49: the free-flying robot's QPs took
     300-500 rounds from W empty, a few from the last active set).
+
+    `pinned` (boolean, per row) marks rows that the equality rows alone fix (their variance
+    left by them far below the prior's): such a row never joins W, and its value is what
+    E's step leaves (reported in the excess). No working row can move it, so its violation
+    is E's round-off or an inconsistency; with it in the dual, round-off rho of 1e-13
+    dropped a bound from a full W, and the row then joined as independent by 4x its
+    `dependence` margin (a terminal inequality implied by the terminal equalities at a
+    minimum-time vertex: the final step 0.6 past a bound, an elastic step that raised the
+    violation, STALLED; issue 49).
     """
     m, n = H.shape[0], d.shape[0]
     rank_left = n - (m if num_equalities is None else num_equalities)
@@ -279,6 +289,7 @@ def dual_active_set(
         return ~state[5] & (state[4] < max_iter)
 
     none = jnp.zeros(C.shape, bool)
+    pinned = none if pinned is None else pinned
     if warm is None:
         W, u, PW, M, G, slot_row = (
             none,
@@ -289,8 +300,8 @@ def dual_active_set(
             jnp.full(n, -1),
         )
     else:
-        d, W, u, PW, M, G, slot_row = _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, warm)
-    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), none, PW, M, G, slot_row)
+        d, W, u, PW, M, G, slot_row = _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, warm & ~pinned)
+    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), pinned, PW, M, G, slot_row)
     d, W, u, *_ = lax.while_loop(cond, body, init)
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
 
@@ -362,6 +373,7 @@ def inequality_step(
     equalities: tuple[Float[Array, "p p"], Float[Array, " m"], Float[Array, " m"]],
     num_equalities=None,
     warm: Bool[Array, " q"] | None = None,
+    pinned: Bool[Array, " q"] | None = None,
 ):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
@@ -373,8 +385,11 @@ def inequality_step(
     where B has directions of nearly zero curvature (variance 1e8) before the working rows
     take the step back (|H d + E| as large as |E|: a pendulum's minimum time STALLED above
     `ctol`; RESULTS.md). Returns `(d, P, W, u, excess)`: the step, its covariance, and
-    `dual_active_set`'s working set, multipliers and excess (`warm`: its start)."""
-    W, u, excess = dual_active_set(d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities, warm)
+    `dual_active_set`'s working set, multipliers and excess (`warm`: its start; `pinned`:
+    rows that cannot join it)."""
+    W, u, excess = dual_active_set(
+        d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities, warm, pinned
+    )
     # W's rows gathered in their order into n slots (at most n are independent): the same
     # updates as a scan over every row that skips the others, at a fraction of the rounds
     n = d.shape[0]

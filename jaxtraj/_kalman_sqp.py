@@ -355,6 +355,7 @@ class KalmanSQP(AbstractSolver):
                     (jnp.where(elastic, P_eq, P), ev.E, r),
                     num_equalities=jnp.where(elastic, 0, m),
                     warm=warm,
+                    pinned=pinned & ~elastic,  # (E's rows are soft in the elastic rounds)
                 )
                 final = C + C_a @ d
                 outside = jnp.where(active, -jnp.inf, final)  # the rows the active set left out

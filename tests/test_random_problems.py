@@ -135,3 +135,24 @@ def test_minimum_time_reach_with_a_terminal_inequality_at_a_vertex(segments, sol
             sol = jt.solve(prob, ctrl, a0, solver=solver)
             assert jt.status_name(sol.status) == "SUCCESS", (u, a0)
             assert abs(float(sol.tf) - np.sqrt(2.0)) <= 1e-8 * np.sqrt(2.0), (u, float(sol.tf))
+
+
+@pytest.mark.parametrize("seed", [1080, 1106])
+def test_minimum_time_with_a_reach_row_that_the_terminal_equalities_imply(seed):
+    """Random least-time problems (`fuzz.make_min_time`) whose terminal equalities fix every
+    state, so that their half-space rows are met exactly where the equalities are: a
+    degenerate vertex, one active row more than the parameters. The default ended STALLED
+    3.7e-7 and 1.1e-6 below the least time, stationary to 1e-15 with a violation of 3.6e-5
+    left: the implied row entered the dual active set on round-off (rho of 1e-13 dropped a
+    bound from the full working set), the refiltered step went 0.6 past that bound, and the
+    elastic step raised the violation (`dual_active_set(pinned=)`). Now every start ends
+    SUCCESS at the oracle's least time (HiGHS LPs and bisection)."""
+    fuzz = load_benchmark("fuzz")
+    rp = fuzz.make_min_time(seed)
+    assert rp.args["Pe"].shape[0] == rp.n and rp.args["Ci"].shape[0] >= 1
+    reference, _ = rp.oracle()
+    outcomes = [
+        (kind, *fuzz.check(rp, TRUST_REGION, a0, reference))
+        for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items()
+    ]
+    assert all(o[1] == "ok" for o in outcomes), outcomes
