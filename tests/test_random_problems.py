@@ -137,7 +137,7 @@ def test_minimum_time_reach_with_a_terminal_inequality_at_a_vertex(segments, sol
             assert abs(float(sol.tf) - np.sqrt(2.0)) <= 1e-8 * np.sqrt(2.0), (u, float(sol.tf))
 
 
-@pytest.mark.parametrize("seed", [1080, 1106])
+@pytest.mark.parametrize("seed", [1080, pytest.param(1106, marks=pytest.mark.slow)])
 def test_minimum_time_with_a_reach_row_that_the_terminal_equalities_imply(seed):
     """Random least-time problems (`fuzz.make_min_time`) whose terminal equalities fix every
     state, so that their half-space rows are met exactly where the equalities are: a
