@@ -170,7 +170,8 @@ def dual_active_set(
     num_equalities=None,
     warm: Bool[Array, " q"] | None = None,
     pinned: Bool[Array, " q"] | None = None,
-) -> tuple[Bool[Array, " q"], Float[Array, " q"], Float[Array, " q"]]:
+    dual_bound=None,
+) -> tuple[Bool[Array, " q"], Float[Array, " q"], Float[Array, " q"], Array, Array]:
     """The inequality QP of an SQP step by Goldfarb & Idnani's dual active-set method (Math.
     Programming 27, 1983) in filter form.
 
@@ -195,10 +196,11 @@ def dual_active_set(
 
     A violated row that no step can meet (dependent on W, and no multiplier of W blocks:
     the linearized constraints are inconsistent, or, at a vertex, the row is violated by
-    the filter's round-off only) is skipped. Returns `(W, u, excess)`: the working set
-    (boolean, per row), its multipliers, and C + C_a d on the rows outside W (-inf on W's):
-    its maximum is <= `threshold` unless a row was skipped (round-off, or the inconsistency)
-    or `max_iter` ended the rounds. The caller filters W's rows to get the step itself.
+    the filter's round-off only) is skipped. Returns `(W, u, excess, rounds, rise)`: the
+    working set (boolean, per row), its multipliers, C + C_a d on the rows outside W (-inf on
+    W's): its maximum is <= `threshold` unless a row was skipped (round-off, or the
+    inconsistency) or the rounds ended early (`max_iter`, `dual_bound`), the rounds taken and
+    the dual objective's rise. The caller filters W's rows to get the step itself.
 
     `warm` (boolean, per row; the rows active in the last QP of an SQP run) starts W there
     instead of empty: its rows are filtered (dependent ones and those past the rank left
@@ -215,6 +217,16 @@ def dual_active_set(
     `dependence` margin (a terminal inequality implied by the terminal equalities at a
     minimum-time vertex: the final step 0.6 past a bound, an elastic step that raised the
     violation, STALLED; issue 49).
+
+    `dual_bound` (a scalar, default inf): an upper bound on the QP's optimal value minus the
+    model's value at `d` (the caller's, from a bounded feasible region). The dual objective
+    never exceeds the primal optimum, so once its rise exceeds the bound the QP is
+    infeasible and the rounds end there, unfinished. (With its working set full, an
+    infeasible QP's rows only replace one another, each swap raising the dual objective
+    without bound: the free-flying robot's hard QP at its naive start ran all its 4 n + 20
+    rounds, multipliers 1e115 at the end; issue 49.) The rise is tracked as Goldfarb and
+    Idnani's: t (s_p - t z^T c / 2) per step of length t (z = 0 where d does not move), and
+    (1/2) u^T s at a warm start.
     """
     m, n = H.shape[0], d.shape[0]
     rank_left = n - (m if num_equalities is None else num_equalities)
@@ -229,7 +241,7 @@ def dual_active_set(
     # (the solution of [H; C_W]^T rho = B z - c, exact where those rows are independent).
 
     def body(state):
-        d, W, u, p, it, _, skipped, PW, M, G, slot_row = state
+        d, W, u, p, it, _, skipped, PW, M, G, slot_row, rise = state
         s = C + C_a @ d
         v = jnp.where(W | skipped, -jnp.inf, s)
         worst = jnp.argmax(v)
@@ -248,6 +260,7 @@ def dual_active_set(
         t = jnp.minimum(ratio[k], t_full)
         move = ~finished & jnp.isfinite(t)
         stuck = ~finished & ~jnp.isfinite(t)
+        rise = rise + jnp.where(move, t * (s[p] - 0.5 * t * jnp.where(independent, zc, 0.0)), 0.0)
         d = jnp.where(move & independent, d - t * z, d)
         u = jnp.where(move, u + t * jnp.where(W, rho, 0.0), u)
         u = u.at[p].add(jnp.where(move, t, 0.0))
@@ -283,13 +296,16 @@ def dual_active_set(
 
         PW, M = lax.cond(drop, refactor, lambda _: (PW, M), slot_row)
         p = jnp.where(full | finished | stuck, -1, p)
-        return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row
+        return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row, rise
+
+    bound = jnp.asarray(jnp.inf if dual_bound is None else dual_bound, d.dtype)
 
     def cond(state):
-        return ~state[5] & (state[4] < max_iter)
+        return ~state[5] & (state[4] < max_iter) & ~(state[11] > bound)
 
     none = jnp.zeros(C.shape, bool)
     pinned = none if pinned is None else pinned
+    at_start = C + C_a @ d
     if warm is None:
         W, u, PW, M, G, slot_row = (
             none,
@@ -301,9 +317,10 @@ def dual_active_set(
         )
     else:
         d, W, u, PW, M, G, slot_row = _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, warm & ~pinned)
-    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), pinned, PW, M, G, slot_row)
-    d, W, u, *_ = lax.while_loop(cond, body, init)
-    return W, u, jnp.where(W, -jnp.inf, C + C_a @ d)
+    rise = 0.5 * jnp.sum(jnp.where(W, u * at_start, 0.0))
+    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), pinned, PW, M, G, slot_row, rise)
+    d, W, u, _, rounds, *_, rise = lax.while_loop(cond, body, init)
+    return W, u, jnp.where(W, -jnp.inf, C + C_a @ d), rounds, rise
 
 
 def _slot_inverse(S, valid):
@@ -374,6 +391,7 @@ def inequality_step(
     num_equalities=None,
     warm: Bool[Array, " q"] | None = None,
     pinned: Bool[Array, " q"] | None = None,
+    dual_bound=None,
 ):
     """The QP step with inequalities: from the equality-constrained step `d` with covariance
     `P` (E's rows `H` filtered), the working set of `dual_active_set`, then its rows
@@ -386,9 +404,9 @@ def inequality_step(
     take the step back (|H d + E| as large as |E|: a pendulum's minimum time STALLED above
     `ctol`; RESULTS.md). Returns `(d, P, W, u, excess)`: the step, its covariance, and
     `dual_active_set`'s working set, multipliers and excess (`warm`: its start; `pinned`:
-    rows that cannot join it)."""
-    W, u, excess = dual_active_set(
-        d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities, warm, pinned
+    rows that cannot join it; `dual_bound`: where it gives up)."""
+    W, u, excess, _, _ = dual_active_set(
+        d, P, H, C, C_a, r, prior_var, dependence, threshold, max_iter, num_equalities, warm, pinned, dual_bound
     )
     # W's rows gathered in their order into n slots (at most n are independent): the same
     # updates as a scan over every row that skips the others, at a fraction of the rounds

@@ -279,6 +279,14 @@ class KalmanSQP(AbstractSolver):
             max_rounds = 4 * d.shape[0] + 20
             # the rows active in the last QP (their multipliers in `lam`) start the active set
             warm = jnp.concatenate([lam[m:] > 0, jnp.zeros(C.shape[0] - n_rows, bool)])
+            # Within the box the model rises above its value at E's step d by at most
+            # |B| |e|^2 / 2, |e| <= |d| + sqrt(n) radius (d minimizes it on E's rows): a dual
+            # objective past 10 x that (a margin for the filter's noisy rows) proves the hard
+            # QP infeasible (`dual_active_set(dual_bound=)`). No bound without the box.
+            dual_bound = jnp.inf
+            if radius is not None:
+                reach = jnp.linalg.norm(d) + math.sqrt(d.shape[0]) * radius
+                dual_bound = 5.0 * jnp.linalg.norm(B) * reach**2
 
             # Elastic mode. If the linearized constraints are inconsistent (the hard step is,
             # as defined below; or a row that E's rows alone pin, its variance left by them below
@@ -356,6 +364,7 @@ class KalmanSQP(AbstractSolver):
                     num_equalities=jnp.where(elastic, 0, m),
                     warm=warm,
                     pinned=pinned & ~elastic,  # (E's rows are soft in the elastic rounds)
+                    dual_bound=jnp.where(elastic, jnp.inf, dual_bound),
                 )
                 final = C + C_a @ d
                 outside = jnp.where(active, -jnp.inf, final)  # the rows the active set left out

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import assume, given, settings, strategies as st
 
 from jaxtraj import Evaluation, KalmanSQP
-from jaxtraj._kalman import inequality_step, sequential_update
+from jaxtraj._kalman import dual_active_set, inequality_step, sequential_update
 from jaxtraj._kalman_sqp import ELASTIC_PINNED
 
 R_REL = 1e-12  # KalmanSQP's default relative noise
@@ -104,6 +104,72 @@ def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours, warm):
     residual = B @ d + g + C_a.T @ u
     lam_E = np.linalg.lstsq(H.T, -residual, rcond=None)[0] if me else np.zeros(0)
     assert np.max(np.abs(residual + H.T @ lam_E)) <= 1e-7 * (1.0 + np.max(np.abs(g)) + np.max(np.abs(u), initial=0.0))
+
+
+@functools.cache
+def _dual(n, me, mi):
+    """E's step d0 and its covariance (as `_step`), then `dual_active_set` alone, with a
+    `dual_bound` or none (inf)."""
+
+    @jax.jit
+    def dual(B, g, H, E, C, C_a, warm, bound):
+        P = jnp.linalg.inv(B)
+        P = 0.5 * (P + P.T)
+        r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
+        d, _, _ = sequential_update(-P @ g, P, H, -E, r)
+        d, P1, _ = sequential_update(d, P, H, -E, r)
+        prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
+        pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
+        args = (C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20)
+        return d, dual_active_set(d, P1, H, *args, warm=warm, dual_bound=bound), pinned
+
+    return dual
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.sampled_from([3, 7]),
+    me=st.sampled_from([0, 2]),
+    mi=st.sampled_from([4, 13]),
+    warm=st.sampled_from(["empty", "random"]),
+)
+def test_the_duals_rise_is_the_optimal_value_over_es_step(seed, n, me, mi, warm):
+    """Weak duality, which `dual_bound` relies on: the dual objective's rise that the dual
+    active set tracks (Goldfarb and Idnani's increments, half of u^T s at a warm start) ends
+    at f(x*) - f(d0) on feasible QPs, x* qpOASES's minimizer of f = d^T B d / 2 + g^T d and
+    d0 the minimizer on E's rows alone."""
+    B, g, H, E, C, C_a = _random_qp(seed, n, me, mi, False)
+    rng = np.random.default_rng(seed + 1)
+    start = {"empty": np.zeros(mi, bool), "random": rng.uniform(size=mi) < 0.5}[warm]
+    args = (jnp.asarray(v) for v in (B, g, H, E, C, C_a, start))
+    d0, (_, _, excess, _, rise), pinned = _dual(n, me, mi)(*args, jnp.inf)
+    assume(not pinned)
+    assert float(jnp.max(excess)) <= 1e-9
+    x, d0 = _qpoases(B, g, H, E, C, C_a), np.asarray(d0)
+    f = lambda d: 0.5 * d @ B @ d + g @ d
+    gap = f(x) - f(d0)
+    assert abs(float(rise) - gap) <= 1e-6 * (1.0 + abs(gap) + abs(f(x)))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_an_infeasible_qp_ends_where_the_dual_passes_its_bound(seed):
+    """E's rows ask for a step 10 n times longer than the box |d_i| <= 1 allows: infeasible.
+    With the bound of KalmanSQP's trust region (5 |B| (|d0| + sqrt(n))^2, the model's rise
+    over the box) the dual ends in fewer rounds, past the bound, unfinished (a row left
+    violated), as it ends without one (the rows run out or a row is skipped)."""
+    rng = np.random.default_rng(seed)
+    n, me = 48, 6
+    M = rng.normal(size=(n, n))
+    B = M @ M.T + 0.1 * np.eye(n)
+    g, H, E = rng.normal(size=n), rng.normal(size=(me, n)), 10.0 * n * rng.normal(size=me)
+    C, C_a = -np.ones(2 * n), np.vstack([np.eye(n), -np.eye(n)])
+    args = [jnp.asarray(v) for v in (B, g, H, E, C, C_a, np.zeros(2 * n, bool))]
+    d0, (_, _, excess, rounds, rise), _ = _dual(n, me, 2 * n)(*args, jnp.inf)
+    bound = 5.0 * np.linalg.norm(B) * (np.linalg.norm(d0) + np.sqrt(n)) ** 2
+    _, (_, _, excess_b, rounds_b, rise_b), _ = _dual(n, me, 2 * n)(*args, bound)
+    assert float(rise) > bound and float(rise_b) > bound
+    assert int(rounds_b) < int(rounds) and float(jnp.max(excess_b)) > 1.0 and float(jnp.max(excess)) > 1.0
 
 
 @functools.cache
