@@ -387,7 +387,7 @@ class AugmentedLagrangian(AbstractSolver):
             "curvature": lambda: self.curvature > 0,
             "max_step": lambda: self.max_step > 0,
         }
-        check_settings("AugmentedLagrangian", self, checks)
+        check_settings("AugmentedLagrangian", self, checks, flags=("precondition",))
 
     # ------------------------------------------------------------------ pieces
 

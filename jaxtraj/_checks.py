@@ -23,13 +23,14 @@ def require_float64():
         )
 
 
-def check_settings(owner: str, obj, rules: dict):
+def check_settings(owner: str, obj, rules: dict, flags: tuple = ()):
     """Raise a ValueError naming `owner` and the field for the first rule (field name ->
     callable returning bool) that fails or cannot be evaluated (a wrong type, e.g. a string
-    tolerance)."""
+    tolerance), or whose value is not a scalar or (unless in `flags`) is a bool."""
     for name, rule in rules.items():
-        try:
-            ok = bool(rule())
+        value = getattr(obj, name)
+        try:  # (an array of shape (1,) failed inside the solve; True was taken as 1)
+            ok = np.ndim(value) == 0 and (name in flags or not isinstance(value, bool | np.bool_)) and bool(rule())
         except (TypeError, ValueError):
             ok = False
         if not ok:

@@ -336,6 +336,13 @@ def test_complex_parameters_are_refused():
         lambda: jt.LineSearch(mu_max=float("inf")),
         lambda: jt.TrustRegion(radius=float("inf")),
         lambda: jt.TrustRegion(cap_progress=1.0),
+        # accepted until the fifth audit: an array of shape (1,) failed inside the solve
+        # (JAX's while_loop carry message); a bool was taken as 1 or 0
+        lambda: jt.TrustRegion(radius=np.array([1.0])),
+        lambda: jt.LineSearch(radius=np.array([0.5])),
+        lambda: jt.TrustRegion(mu_max=True),
+        lambda: jt.LineSearch(cap_progress=False),
+        lambda: jt.TrustRegion(feasibility_first=np.True_),
     ],
 )
 def test_a_setting_of_the_wrong_type_names_the_field(make):
