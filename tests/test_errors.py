@@ -92,10 +92,31 @@ def test_degree_outside_range(degree):
         C.SaturatedSpline(3, degree, -1.0, 1.0)
 
 
-@pytest.mark.parametrize("segments", [0, -2, 2.0])
+@pytest.mark.parametrize("segments", [0, -2, 2.0, 2**40])
 def test_bad_segment_count(segments):
     with pytest.raises(ValueError, match=r"`segments` must be an int >= 1"):
         C.PiecewiseLinear(segments)
+    with pytest.raises(ValueError, match=r"`channels` must be an int >= 1"):
+        C.PiecewiseConstant(2, channels=segments)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda flag: C.PiecewiseLinear(2, continuous=flag, free_times=flag),
+        lambda flag: C.PiecewiseParabolic(2, free_times=flag),
+        lambda flag: C.PiecewiseConstant(2, free_times=flag),
+        lambda flag: C.SaturatedSpline(2, 1, -1.0, 1.0, free_durations=flag),
+    ],
+)
+def test_a_numpy_bool_flag_works_as_a_bool(make):
+    """The fifth audit: a NumPy bool flag was accepted, then traced under jit (JAX's
+    TracerBoolConversionError from jt.solve or jt.simulate)."""
+    prob = jt.problems.analytic.min_energy_double_integrator()
+    ctrl = make(np.True_)
+    assert ctrl == make(True)
+    a = ctrl.initial_guess(1.0, 0.0, 0.0)
+    np.testing.assert_array_equal(jt.simulate(prob, ctrl, a).x, jt.simulate(prob, make(True), a).x)
 
 
 def test_bad_bounds_method_simulator_and_guess():

@@ -43,14 +43,20 @@ def _channel_line(tf, u_start, u_end, t, q):
 
 
 def _check_segments(segments, name="segments"):
-    if not (isinstance(segments, int) and not isinstance(segments, bool) and segments >= 1):
-        raise ValueError(f"`{name}` must be an int >= 1; got {segments!r}.")
+    # (< 2**31: the solvers' loops count in int32)
+    if not (isinstance(segments, int) and not isinstance(segments, bool) and 1 <= segments < 2**31):
+        raise ValueError(f"`{name}` must be an int >= 1 and < 2**31; got {segments!r}.")
 
 
 def _check_flag(name, value):
     """A family's True/False setting is a bool (a text "no" was taken as True)."""
     if not isinstance(value, bool | np.bool_):
         raise ValueError(f"`{name}` must be True or False; got {value!r}.")
+
+
+def _flag(value):
+    """A NumPy bool as a Python bool (an array leaf, it was traced under jit: JAX's error)."""
+    return bool(value) if isinstance(value, np.bool_) else value
 
 
 def _check_flags(family, *names):
@@ -86,8 +92,8 @@ class PiecewiseLinear(AbstractControl):
     """
 
     segments: int
-    continuous: bool = True
-    free_times: bool = False
+    continuous: bool = eqx.field(default=True, converter=_flag)
+    free_times: bool = eqx.field(default=False, converter=_flag)
     channels: int = 1
     affine: ClassVar[bool] = True
     value_bounds_exact: ClassVar[bool] = True
@@ -193,7 +199,7 @@ class PiecewiseParabolic(AbstractControl):
     """
 
     segments: int
-    free_times: bool = True
+    free_times: bool = eqx.field(default=True, converter=_flag)
     channels: int = 1
     affine: ClassVar[bool] = True
 
@@ -280,7 +286,7 @@ class PiecewiseConstant(AbstractControl):
     """
 
     segments: int
-    free_times: bool = True
+    free_times: bool = eqx.field(default=True, converter=_flag)
     channels: int = 1
     affine: ClassVar[bool] = True
     value_bounds_exact: ClassVar[bool] = True
@@ -421,7 +427,7 @@ class SaturatedSpline(AbstractControl):
         self.lower = jnp.asarray(lo.copy())
         self.upper = jnp.asarray(hi.copy())
         self._limits = (tuple(map(float, lo)), tuple(map(float, hi)))
-        self.free_durations = free_durations
+        self.free_durations = _flag(free_durations)
 
     @property
     def num_segments(self):
