@@ -12,6 +12,7 @@ from ._checks import (
     check_memory,
     check_problem_and_control,
     check_solver_memory,
+    is_count,
     memory_refusal,
     traced_bounds,
 )
@@ -90,8 +91,10 @@ def solve(
     solver.check(problem, control)
     check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")
     check_solver_memory(control)
-    if not (isinstance(progress, int) and progress >= 0):
-        raise ValueError(f"`progress` must be an int >= 0; got {progress!r}.")
+    # (True printed every step; 2**40 wrapped in int32 and printed every step too)
+    if not is_count(progress, 0):
+        raise ValueError(f"`progress` must be an int >= 0 and < 2**31; got {progress!r}.")
+    progress = int(progress)  # (a NumPy integer, an array leaf, was traced)
 
     checked = traced_bounds(problem)
 

@@ -404,13 +404,19 @@ def test_numpy_integers_count_as_ints():
     prob, ctrl = _energy_problem(), C.PiecewiseLinear(3)
     a0 = ctrl.initial_guess(1.2, 0.0, 0.0)
     assert jt.RK4(np.int64(4)) == jt.RK4(4)
-    one = jt.solve(prob, ctrl, a0, jt.KalmanSearch(), simulator=jt.RK4(np.int64(4)), max_steps=np.int64(3))
+    one = jt.solve(
+        prob, ctrl, a0, jt.KalmanSearch(), simulator=jt.RK4(np.int64(4)), max_steps=np.int64(3), progress=np.int64(0)
+    )
     two = jt.solve(prob, ctrl, a0, jt.KalmanSearch(), simulator=jt.RK4(4), max_steps=3)
     assert int(one.steps) == int(two.steps) <= 3
     np.testing.assert_array_equal(one.params, two.params)
     for bad in (0, 2.0, True, np.float64(3.0)):
         with pytest.raises(ValueError, match="`max_steps` must be an int >= 1"):
             jt.solve(prob, ctrl, a0, max_steps=bad)
+    # the fifth audit: True printed every step, 2**40 (wrapped in int32) too
+    for bad in (True, 2**40, -1, 2.0):
+        with pytest.raises(ValueError, match="`progress` must be an int >= 0"):
+            jt.solve(prob, ctrl, a0, progress=bad)
 
 
 def test_what_cannot_fit_in_memory_is_refused_before_the_work():
