@@ -435,7 +435,11 @@ class Problem(eqx.Module):
 
     def _add_tf_bounds(self, tf_bounds):
         """Append lower - tf <= 0 and tf - upper <= 0 (finite ones) to `terminal_inequality`."""
-        try:
+        try:  # (a text "12" was the bounds (1, 2), a set in any order, bools 0 and 1)
+            if not isinstance(tf_bounds, tuple | list | np.ndarray | jax.Array):
+                raise TypeError
+            if any(isinstance(v, str | bytes | bool | np.bool_) for v in tf_bounds):
+                raise TypeError
             lo, hi = (float(v) for v in tf_bounds)
         except (TypeError, ValueError):
             raise ValueError(f"`tf_bounds` must be a pair (lower, upper) of numbers; got {tf_bounds!r}.") from None

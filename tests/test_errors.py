@@ -294,6 +294,11 @@ def _energy_problem(**kwargs):
             },
             r"`terminal_inequality_names`: \['tf upper bound'\] is also the name jt.Problem gives the rows of `tf_b",
         ),
+        # the fifth audit: a text "12" was taken as the bounds (1, 2), bools as 0 and 1
+        ({"tf_bounds": "12"}, r"`tf_bounds` must be a pair \(lower, upper\) of numbers; got '12'"),
+        ({"tf_bounds": ("0.5", "2")}, r"`tf_bounds` must be a pair \(lower, upper\) of numbers"),
+        ({"tf_bounds": (False, True)}, r"`tf_bounds` must be a pair \(lower, upper\) of numbers"),
+        ({"tf_bounds": {0.5, 2.0}}, r"`tf_bounds` must be a pair \(lower, upper\) of numbers"),
         (
             {"state_names": ("running cost", "v", "e"), "running_cost": lambda t, x, u, a: u[0] ** 2},
             r"`state_names`: \['running cost'\] is also the name jt.Problem gives the accumulated `running_cost`",
