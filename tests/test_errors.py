@@ -119,6 +119,13 @@ def test_a_numpy_bool_flag_works_as_a_bool(make):
     np.testing.assert_array_equal(jt.simulate(prob, ctrl, a).x, jt.simulate(prob, make(True), a).x)
 
 
+@pytest.mark.parametrize("bounds", [([], []), (False, True), (np.zeros(0), 1.0)])
+def test_spline_bounds_of_no_channel_or_bools_are_refused(bounds):
+    """The fifth audit: empty bounds made a spline of 0 channels, bools one in [0, 1]."""
+    with pytest.raises(ValueError, match=r"`lower`/`upper` must be numbers, one per channel"):
+        C.SaturatedSpline(3, 1, *bounds)
+
+
 def test_bad_bounds_method_simulator_and_guess():
     with pytest.raises(ValueError, match=r"`lower` must be < `upper`"):
         C.SaturatedSpline(3, 1, 1.0, -1.0)

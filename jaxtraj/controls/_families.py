@@ -408,9 +408,13 @@ class SaturatedSpline(AbstractControl):
         _check_flag("free_durations", free_durations)
         if not (isinstance(degree, int) and not isinstance(degree, bool) and 0 <= degree <= 3):
             raise ValueError(f"`degree` must be an int in 0..3; got {degree!r}.")
-        try:
+        try:  # (empty bounds made a family of no channels; bools were taken as 0 and 1)
+            if np.asarray(lower).dtype == bool or np.asarray(upper).dtype == bool:
+                raise TypeError
             lo = np.atleast_1d(np.asarray(lower, dtype=np.float64))
             hi = np.atleast_1d(np.asarray(upper, dtype=np.float64))
+            if lo.size == 0 or hi.size == 0:
+                raise ValueError
         except (TypeError, ValueError):
             raise ValueError(f"`lower`/`upper` must be numbers, one per channel; got {lower!r}, {upper!r}.") from None
         if lo.ndim != 1 or hi.ndim != 1:
