@@ -147,7 +147,8 @@ def run_loop(solver, problem, control, a0, simulator, max_steps, progress_every=
         assert eqx.tree_equal(static, new_static) is True  # trace-time guard: no static drift
         if progress_every:
             lax.cond(
-                (new.num_steps % progress_every == 0) | new.done,
+                # (and the last step: done, or `max_steps` reached, where the line was missing)
+                (new.num_steps % progress_every == 0) | new.done | (new.num_steps >= max_steps),
                 lambda: jax.debug.callback(_print_progress, new.num_steps, _progress_values(solver, new)),
                 lambda: None,
             )

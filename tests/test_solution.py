@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxtraj as jt
-from tests.helpers import counting_problem
+from tests.helpers import counting_problem, reach_problem
 
 SOLVER = jt.KalmanSearch()  # quick to compile
 
@@ -271,6 +271,16 @@ def test_a_start_without_a_finite_point_has_no_zeros_in_its_history_or_progress(
     assert "objective nan" in line and "max|E| nan" in line, line
     jt.io.save(tmp_path / "r", prob, sol, jt.simulate(prob, ctrl, sol.params, simulator=sim))
     assert np.isnan(float(jt.io.load(tmp_path / "r")[0].history.objective[0]))
+
+
+def test_progress_prints_the_last_step_when_max_steps_ends_the_run(capsys):
+    """`progress=N` promises a line every N steps and one at the end: a run that `max_steps`
+    ended between two multiples of N printed no final line (issue 51, fifth audit)."""
+    prob, ctrl = reach_problem(), jt.controls.PiecewiseConstant(2)
+    sol = jt.solve(prob, ctrl, ctrl.initial_guess(2.0, -1.0, -1.0), max_steps=5, progress=3)
+    assert jt.status_name(sol.status) == "MAX_ITERATIONS" and int(sol.steps) == 5
+    steps = [int(line.split()[1]) for line in capsys.readouterr().out.splitlines() if line.strip().startswith("step")]
+    assert steps == [3, 5], steps
 
 
 def _reach_min_time(**kw):
