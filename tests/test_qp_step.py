@@ -126,19 +126,18 @@ def _dual(n, me, mi):
     return dual
 
 
-@settings(max_examples=60, deadline=None, derandomize=True)
+@settings(max_examples=40, deadline=None, derandomize=True)
 @given(
     seed=st.integers(0, 2**31 - 1),
-    n=st.sampled_from([3, 7]),
-    me=st.sampled_from([0, 2]),
-    mi=st.sampled_from([4, 13]),
+    me=st.sampled_from([0, 2]),  # (one shape of n and mi: two compilations)
     warm=st.sampled_from(["empty", "random"]),
 )
-def test_the_duals_rise_is_the_optimal_value_over_es_step(seed, n, me, mi, warm):
+def test_the_duals_rise_is_the_optimal_value_over_es_step(seed, me, warm):
     """Weak duality, which `dual_bound` relies on: the dual objective's rise that the dual
     active set tracks (Goldfarb and Idnani's increments, half of u^T s at a warm start) ends
     at f(x*) - f(d0) on feasible QPs, x* qpOASES's minimizer of f = d^T B d / 2 + g^T d and
     d0 the minimizer on E's rows alone."""
+    n, mi = 7, 13
     B, g, H, E, C, C_a = _random_qp(seed, n, me, mi, False)
     rng = np.random.default_rng(seed + 1)
     start = {"empty": np.zeros(mi, bool), "random": rng.uniform(size=mi) < 0.5}[warm]
@@ -152,7 +151,7 @@ def test_the_duals_rise_is_the_optimal_value_over_es_step(seed, n, me, mi, warm)
     assert abs(float(rise) - gap) <= 1e-6 * (1.0 + abs(gap) + abs(f(x)))
 
 
-@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_an_infeasible_qp_ends_where_the_dual_passes_its_bound(seed):
     """E's rows ask for a step 10 n times longer than the box |d_i| <= 1 allows: infeasible.
     With the bound of KalmanSQP's trust region (5 |B| (|d0| + sqrt(n))^2, the model's rise

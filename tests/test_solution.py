@@ -276,8 +276,9 @@ def test_a_start_without_a_finite_point_has_no_zeros_in_its_history_or_progress(
 def test_progress_prints_the_last_step_when_max_steps_ends_the_run(capsys):
     """`progress=N` promises a line every N steps and one at the end: a run that `max_steps`
     ended between two multiples of N printed no final line (issue 51, fifth audit)."""
-    prob, ctrl = reach_problem(), jt.controls.PiecewiseConstant(2)
-    sol = jt.solve(prob, ctrl, ctrl.initial_guess(2.0, -1.0, -1.0), max_steps=5, progress=3)
+    prob, ctrl = reach_problem(), jt.controls.PiecewiseConstant(1)
+    a0 = ctrl.initial_guess(2.0, -1.0, -1.0)
+    sol = jt.solve(prob, ctrl, a0, solver=jt.KalmanSearch(), simulator=jt.RK4(4), max_steps=5, progress=3)
     assert jt.status_name(sol.status) == "MAX_ITERATIONS" and int(sol.steps) == 5
     steps = [int(line.split()[1]) for line in capsys.readouterr().out.splitlines() if line.strip().startswith("step")]
     assert steps == [3, 5], steps
