@@ -26,10 +26,10 @@ import numpy as np
 import optax
 
 from ._checks import check_settings, is_count
-from ._driver import AbstractSolver
+from ._driver import AbstractSolver, SolverState, start_counters
 from ._kkt import ACTIVE_TOL, inequality_rows, multipliers, parameter_scale
 from ._sensitivity import Evaluation, evaluate_jitted
-from ._solution import History, Solution
+from ._solution import Solution
 from ._status import Status, diverged, failed
 from .controls import saturates_within, value_bounds
 
@@ -286,7 +286,7 @@ def _zero_cotangent(v):
 # ------------------------------------------------------------------------------------------
 
 
-class _State(eqx.Module):
+class _State(SolverState):
     a: jax.Array
     ev: Evaluation
     value: jax.Array  # L_A(a) with the current multipliers
@@ -301,12 +301,6 @@ class _State(eqx.Module):
     inner_accepted: jax.Array  # accepted steps in this outer iteration
     rejected: jax.Array  # consecutive rejected steps
     num_outer: jax.Array
-    num_iterations: jax.Array
-    num_integrations: jax.Array
-    num_steps: jax.Array
-    done: jax.Array
-    status: Status
-    history: History
 
 
 class AugmentedLagrangian(AbstractSolver):
@@ -455,7 +449,7 @@ class AugmentedLagrangian(AbstractSolver):
         )
         metric = self._metric(ev, m, a, grad, box)
         f = jnp.float64
-        hist = History.empty(max_steps, ("outer_iteration",))
+        status = Status.where(ok, Status.SUCCESS, failed(ev.status))
         return _State(
             a=a,
             ev=ev,
@@ -471,12 +465,7 @@ class AugmentedLagrangian(AbstractSolver):
             inner_accepted=jnp.array(0, jnp.int32),
             rejected=jnp.array(0, jnp.int32),
             num_outer=jnp.array(0, jnp.int32),
-            num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(1, jnp.int32),
-            num_steps=jnp.array(0, jnp.int32),
-            done=~ok,
-            status=Status.where(ok, Status.SUCCESS, failed(ev.status)),
-            history=hist,
+            **start_counters(max_steps, ("outer_iteration",), integrations=1, done=~ok, status=status),
         )
 
     def _metric(self, ev, m, a, grad, box):

@@ -17,14 +17,44 @@ import numpy as np
 from jax import lax
 
 from ._solution import History, Solution
-from ._status import without_point
+from ._status import Status, without_point
+
+
+class SolverState(eqx.Module):
+    """The counters every solver's state carries (each solver's state subclasses this and
+    adds its own fields): `num_iterations` accepted steps, `num_integrations` integrations
+    (with sensitivities or the Hessian's), `num_steps` calls of `step`, `done`, the `status`
+    so far, and the `history` (written only by `History.record`)."""
+
+    num_iterations: jax.Array
+    num_integrations: jax.Array
+    num_steps: jax.Array
+    done: jax.Array
+    status: Status
+    history: History
+
+
+def start_counters(
+    max_steps: int, details: tuple, *, integrations: int = 0, done: bool | jax.Array = False, status=Status.SUCCESS
+) -> dict:
+    """`SolverState`'s fields at the start, as keywords for the state's constructor: no
+    iteration or step yet, `integrations` done by `init`, an empty history of `max_steps`
+    entries with the solver's `details`."""
+    return dict(
+        num_iterations=jnp.array(0, jnp.int32),
+        num_integrations=jnp.array(integrations, jnp.int32),
+        num_steps=jnp.array(0, jnp.int32),
+        done=jnp.asarray(done),
+        status=status,
+        history=History.empty(max_steps, details),
+    )
 
 
 class AbstractSolver(eqx.Module):
     """A solver of the restricted problem as a state machine over an array-only state.
 
-    `state` must carry `done` (bool scalar), `num_steps` and `history` (a `History`, written
-    only by `History.record`: drivers may give it length 0). Each `step` integrates one
+    `state` is a `SolverState` (its subclass with the solver's own fields; drivers may give
+    its `history` length 0). Each `step` integrates one
     candidate point with sensitivities (KalmanSQP adds one second-order integration, the
     exact Hessian, at an accepted point; `Solution.integrations` counts them all) and
     records one History entry. A batch runs `step` vmapped, finished lanes included (their

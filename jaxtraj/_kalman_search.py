@@ -16,7 +16,6 @@ docs/solvers/kalman-search.md (the algorithm, its history and measurements).
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,17 +23,17 @@ from jax import lax
 
 from ._bounds import require_rows
 from ._checks import check_settings, is_count
-from ._driver import AbstractSolver, only_where
+from ._driver import AbstractSolver, SolverState, only_where, start_counters
 from ._kalman import PATH_DEPENDENCE, keep_knots_ordered, observe_worst, sequential_update
 from ._kkt import ACTIVE_TOL, constraint_rows, inequality_rows, stationarity
 from ._sensitivity import Evaluation, evaluate_jitted, unevaluated
-from ._solution import History, Solution
+from ._solution import Solution
 from ._status import Status
 
 _ALPHAS = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03, 0.02, 0.01])
 
 
-class _State(eqx.Module):
+class _State(SolverState):
     a: jax.Array
     ev: Evaluation
     rho: jax.Array
@@ -46,12 +45,6 @@ class _State(eqx.Module):
     has_pending: jax.Array
     since_reject: jax.Array
     num_rejections: jax.Array
-    num_iterations: jax.Array
-    num_integrations: jax.Array
-    num_steps: jax.Array
-    done: jax.Array
-    status: Status
-    history: History
 
 
 def _values(ev: Evaluation):
@@ -285,12 +278,7 @@ class KalmanSearch(AbstractSolver):
             has_pending=jnp.array(True),
             since_reject=jnp.array(2, jnp.int32),
             num_rejections=jnp.array(0, jnp.int32),
-            num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(0, jnp.int32),
-            num_steps=jnp.array(0, jnp.int32),
-            done=jnp.array(False),
-            status=Status.SUCCESS,
-            history=History.empty(max_steps, ("rho", "phase")),
+            **start_counters(max_steps, ("rho", "phase")),
         )
 
     def step(self, problem, control, simulator, state: _State):

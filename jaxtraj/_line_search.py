@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._checks import check_settings, is_count
-from ._driver import only_where
+from ._driver import SolverState, only_where, start_counters
 from ._kkt import (
     active_rows,
     inequality_rows,
@@ -37,7 +37,6 @@ from ._kkt import (
 )
 from ._penalty import PenaltyCap, far_from_feasible, natural_scale, violation_of
 from ._sensitivity import Evaluation, lagrangian_hessian
-from ._solution import History
 from ._status import Status, failed
 
 #: Far from feasible (`_penalty.far_from_feasible` with this ratio, `TrustRegion`'s
@@ -70,7 +69,7 @@ def _bfgs_step(B, s, cand: Evaluation, ev: Evaluation, lam):
     return bfgs_update(B, s, lagrangian_gradient(cand, lam) - lagrangian_gradient(ev, lam))
 
 
-class LineSearchState(eqx.Module):
+class LineSearchState(SolverState):
     """KalmanSQP's state with the line search."""
 
     a: jax.Array
@@ -93,12 +92,6 @@ class LineSearchState(eqx.Module):
     best_gradient: jax.Array  # the smallest projected gradient at an accepted point
     streak: jax.Array  # steps in a row at an acceptable point (`_kkt.kkt_outcome`)
     scale_free: jax.Array  # the problem cannot see the parameters' scale (`_kkt.scale_free`)
-    num_iterations: jax.Array
-    num_integrations: jax.Array
-    num_steps: jax.Array
-    done: jax.Array
-    status: Status
-    history: History
 
 
 class LineSearch(eqx.Module):
@@ -212,12 +205,7 @@ class LineSearch(eqx.Module):
             best_gradient=jnp.asarray(jnp.inf, f),
             streak=jnp.array(0, jnp.int32),
             scale_free=jnp.array(False),
-            num_iterations=jnp.array(0, jnp.int32),
-            num_integrations=jnp.array(0, jnp.int32),
-            num_steps=jnp.array(0, jnp.int32),
-            done=jnp.array(False),
-            status=Status.SUCCESS,
-            history=History.empty(max_steps, ("alpha", "kind")),
+            **start_counters(max_steps, ("alpha", "kind")),
         )
 
     def step(self, sqp, problem, control, simulator, state: LineSearchState):

@@ -24,7 +24,7 @@ from jax import lax
 
 from ._bounds import bound_excess, knot_gap_rows
 from ._checks import check_settings
-from ._driver import only_where
+from ._driver import SolverState, only_where, start_counters
 from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
@@ -43,7 +43,6 @@ from ._kkt import (
 )
 from ._penalty import PenaltyCap, far_from_feasible, natural_scale, violation, violation_of
 from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian
-from ._solution import History
 from ._status import Status, failed
 
 _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the bracket)
@@ -245,7 +244,7 @@ def trust_region_step(ev: Evaluation, W, radius, knots, dknots, zeta, gap_floor,
     return step
 
 
-class TRState(eqx.Module):
+class TRState(SolverState):
     a: jax.Array
     ev: Evaluation
     lam: jax.Array  # multipliers at a: of E, then of the inequality rows
@@ -260,12 +259,6 @@ class TRState(eqx.Module):
     soc: jax.Array  # the next candidate is a + d + d_soc
     pred: jax.Array
     phi0: jax.Array
-    num_iterations: jax.Array
-    num_integrations: jax.Array
-    num_steps: jax.Array
-    done: jax.Array
-    status: Status
-    history: History
 
 
 def _model(ev: Evaluation, lam, mu, d, B):
@@ -318,12 +311,7 @@ def _init(tr, sqp, problem, control, a0, simulator, max_steps):
         soc=jnp.array(True),  # no new step before the start is evaluated: its candidate is a0
         pred=jnp.asarray(0.0, f),
         phi0=jnp.asarray(0.0, f),
-        num_iterations=jnp.array(0, jnp.int32),
-        num_integrations=jnp.array(0, jnp.int32),
-        num_steps=jnp.array(0, jnp.int32),
-        done=jnp.array(False),
-        status=Status.SUCCESS,
-        history=History.empty(max_steps, ("radius", "kind")),
+        **start_counters(max_steps, ("radius", "kind")),
     )
 
 
