@@ -20,20 +20,27 @@ R_REL = 1e-12  # KalmanSQP's default relative noise
 _direction = eqx.filter_jit(KalmanSQP().direction)
 
 
+def _equality_step(B, g, H, E, C_a):
+    """The equality filter as `KalmanSQP._equality_step`: `(P, r, d, P1, prior_var, pinned)`,
+    P = B^-1, r E's noise, d and P1 the step and covariance after E's rows, the rows' prior
+    variances, and whether E's rows (nearly) pin a row."""
+    P = jnp.linalg.inv(B)
+    P = 0.5 * (P + P.T)
+    r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
+    d, _, _ = sequential_update(-P @ g, P, H, -E, r)
+    d, P1, _ = sequential_update(d, P, H, -E, r)
+    prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
+    pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
+    return P, r, d, P1, prior_var, pinned
+
+
 @functools.cache
 def _step(n, me, mi):
-    """The equality filter (as `KalmanSQP._equality_step`), then `inequality_step`, jitted
-    once per shape."""
+    """The equality filter, then `inequality_step`, jitted once per shape."""
 
     @jax.jit
     def step(B, g, H, E, C, C_a, warm):
-        P = jnp.linalg.inv(B)
-        P = 0.5 * (P + P.T)
-        r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
-        d, _, _ = sequential_update(-P @ g, P, H, -E, r)
-        d, P1, _ = sequential_update(d, P, H, -E, r)
-        prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
-        pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
+        P, r, d, P1, prior_var, pinned = _equality_step(B, g, H, E, C_a)
         step = inequality_step(
             d, P1, H, C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20, (P, E, r), warm=warm
         )
@@ -108,18 +115,12 @@ def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours, warm):
 
 @functools.cache
 def _dual(n, me, mi):
-    """E's step d0 and its covariance (as `_step`), then `dual_active_set` alone, with a
+    """E's step d0 (`_equality_step`), then `dual_active_set` alone, with a
     `dual_bound` or none (inf)."""
 
     @jax.jit
     def dual(B, g, H, E, C, C_a, warm, bound):
-        P = jnp.linalg.inv(B)
-        P = 0.5 * (P + P.T)
-        r = R_REL * jnp.einsum("ip,pq,iq->i", H, P, H) + 1e-300
-        d, _, _ = sequential_update(-P @ g, P, H, -E, r)
-        d, P1, _ = sequential_update(d, P, H, -E, r)
-        prior_var = jnp.einsum("ip,pq,iq->i", C_a, P, C_a)
-        pinned = jnp.any(jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var)
+        _, _, d, P1, prior_var, pinned = _equality_step(B, g, H, E, C_a)
         args = (C, C_a, R_REL * prior_var + 1e-300, prior_var, 1e-12, 1e-12, 4 * n + 20)
         return d, dual_active_set(d, P1, H, *args, warm=warm, dual_bound=bound), pinned
 
