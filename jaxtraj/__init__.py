@@ -28,6 +28,10 @@ from ._batch import (
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._configure import configure_cpu as configure_cpu
 from ._driver import AbstractSolver as AbstractSolver
+from ._export_cache import (
+    disable_solve_cache as disable_solve_cache,
+    enable_solve_cache as enable_solve_cache,
+)
 from ._kalman_search import KalmanSearch as KalmanSearch
 from ._kalman_sqp import KalmanSQP as KalmanSQP
 from ._line_search import LineSearch as LineSearch

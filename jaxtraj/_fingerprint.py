@@ -37,6 +37,19 @@ def fingerprint(tree) -> str:
     return h.hexdigest()
 
 
+def static_fingerprint(tree) -> str:
+    """`fingerprint` with functions left out (a problem's functions enter a key by what they
+    compute: `problem_fingerprint`), and array leaves by dtype and shape only."""
+    leaves, treedef = jax.tree.flatten(tree)
+    h = hashlib.sha256(_ADDRESS.sub("", str(treedef)).encode())
+    for leaf in leaves:
+        if isinstance(leaf, (np.ndarray, jax.Array, np.generic)):
+            h.update(f"array {leaf.dtype} {np.shape(leaf)} {getattr(leaf, 'weak_type', False)}".encode())
+        else:
+            _update(h, leaf, functions=False)
+    return h.hexdigest()
+
+
 def problem_fingerprint(problem, control, simulator) -> str:
     """SHA-256 of what `problem` computes under `control` and `simulator`: the jaxpr of the
     final state, path rows, objective, terminal equalities and inequalities and bound rows at

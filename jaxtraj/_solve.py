@@ -5,6 +5,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import _export_cache
 from ._checks import (
     BOUNDS_CHANGED,
     bounds_changed,
@@ -95,6 +96,12 @@ def solve(
     if not is_count(progress, 0):
         raise ValueError(f"`progress` must be an int >= 0 and < 2**31; got {progress!r}.")
     progress = int(progress)  # (a NumPy integer, an array leaf, was traced)
+
+    if _export_cache.usable(problem, control, a0, progress):  # (`jt.enable_solve_cache`: primal only)
+        with memory_refusal("jt.solve", "use fewer RK4 steps or segments, or a smaller max_steps"):
+            sol = _export_cache.cached_solve(run, solver, problem, control, a0, simulator, max_steps)
+        if sol is not None:
+            return sol
 
     checked = traced_bounds(problem)
 

@@ -1,0 +1,247 @@
+"""`jt.enable_solve_cache`: a solve's program kept on disk as a `jax.export` artifact, so
+that a script run again on an unchanged problem neither traces nor lowers it (issue 53).
+
+Opt-in and process-wide, like `jt.enable_compilation_cache`: `jt.solve` keeps its
+signature, and with the cache off nothing changes. With it on, a `jt.solve` whose inputs are
+all concrete (not under the user's `jit`, `vmap` or a derivative, `progress=0`) runs the
+exported program of `_driver.run` keyed on the problem's fingerprint (`_fingerprint.
+problem_fingerprint`: what the problem computes, not its names), the static configuration
+of problem and control, the solver, the simulator, `max_steps`, the shapes and dtypes of the
+arrays, the JAX and jaxlib versions, jaxtraj's source and the backend. A miss exports the program
+once (the trace and lowering a solve pays anyway) and writes it atomically (a temporary file
+renamed). A corrupt, foreign or unreadable entry is ignored: the solve traces as it would
+without the cache. Its XLA compile is kept by the compilation cache, which this turns on.
+
+The cached path serves the primal solve only: a derivative of `jt.solve` (its arguments are
+tracers then) takes the ordinary, differentiable path. Entries are JAX's own serialization
+(flatbuffers) with a JSON header, never pickles.
+"""
+
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+import re
+import tempfile
+
+import equinox as eqx
+import jax
+import jaxlib
+import numpy as np
+
+from ._cache import default_cache_folder, enable_compilation_cache
+from ._fingerprint import problem_fingerprint, static_fingerprint
+from ._solution import History, Solution
+from ._status import Status
+
+#: The entry format; an entry of another format is ignored.
+FORMAT = "jaxtraj-solve-cache 1"
+_MAGIC = b"JAXTRAJ-EXPORT\n"
+
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+_folder: str | None = None
+#: Exported programs of this process by the static part of the solve (what `jax.jit` keys
+#: on: functions by identity), so that a warm solve pays no fingerprint.
+_memory: dict = {}
+
+
+def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
+    """Keep every solve's program on disk as a `jax.export` artifact, so that a new Python
+    process that runs an unchanged problem again (same functions by what they compute, same
+    arrays' shapes, control family, solver settings, simulator and `max_steps`; any start,
+    any array values) neither traces nor lowers it: `jt.solve` loads the program and its
+    compiled code (the compilation cache, turned on here in its default folder unless JAX
+    already has one).
+
+    Only a `jt.solve` outside the user's `jax.jit` / `jax.vmap` / derivatives and with
+    `progress=0` uses it (derivatives take the ordinary path: the cached program is the
+    primal solve). The key is the problem's fingerprint (what it computes: each call pays
+    it, ~0.05 s, once per process per problem), so a changed constant in a dynamics function
+    traces again; a host callback's Python body is not seen by it (see
+    `_fingerprint.problem_fingerprint`). Call it before the first solve.
+
+    **Arguments:**
+
+    - `folder`: where the programs go (created if missing). Default `$JAXTRAJ_CACHE_DIR/
+      export`, else `$XDG_CACHE_HOME/jaxtraj/export` (`~/.cache/jaxtraj/export`).
+
+    **Returns:** the folder, or None if it cannot be created or JAX's serializer is missing
+    (the `flatbuffers` package); nothing is changed then.
+
+    **Raises:** `ValueError` when `folder` is neither None nor a path.
+    """
+    global _folder
+    if folder is None:
+        folder = os.path.join(os.path.dirname(default_cache_folder()), "export")
+    if not isinstance(folder, str | os.PathLike):
+        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
+    folder = os.fspath(folder)
+    try:
+        import flatbuffers  # noqa: F401  (jax.export's serializer needs it)
+
+        os.makedirs(folder, exist_ok=True)
+    except (ImportError, OSError):
+        return None
+    if not jax.config.jax_compilation_cache_dir:  # pyright: ignore[reportAttributeAccessIssue]
+        enable_compilation_cache()
+    _folder = folder
+    _memory.clear()
+    return folder
+
+
+def disable_solve_cache() -> None:
+    """Turn the solve cache off (the compilation cache stays as it is)."""
+    global _folder
+    _folder = None
+    _memory.clear()
+
+
+def usable(problem, control, a0, progress) -> bool:
+    """Whether this solve may take the cached path: the cache is on, `progress` is 0 and no
+    input is a tracer."""
+    if _folder is None or progress:
+        return False
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((problem, control, a0)))
+
+
+def _key(solver, problem, control, a0, simulator, max_steps, dynamic, static) -> str:
+    h = hashlib.sha256(FORMAT.encode())
+    for part in (jax.__version__, jaxlib.__version__, _version(), jax.default_backend(), str(max_steps)):
+        h.update(part.encode() + b"\0")
+    h.update(problem_fingerprint(problem, control, simulator).encode())
+    # (the arrays by dtype and shape: their values are the program's inputs)
+    h.update(static_fingerprint((static, dynamic, a0, solver, simulator)).encode())
+    return h.hexdigest()
+
+
+@functools.cache
+def _version() -> str:
+    """SHA-256 of jaxtraj's own source files: a program exported by other solver code (another
+    version, or a checkout edited since) is never used."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            h.update(os.path.relpath(path, root).encode() + b"\0")
+            with open(path, "rb") as f:
+                h.update(f.read())
+    return h.hexdigest()
+
+
+def _template(layout):
+    """A `Solution` of placeholder leaves with `layout`'s structure (`_layout`), built
+    without tracing anything."""
+    z = np.zeros(())
+    history = History(
+        **{f.name: z for f in dataclasses.fields(History) if f.name != "details"},
+        details={k: z for k in layout["details"]},
+    )
+    fields = {f.name: (None if f.name in layout["none"] else z) for f in dataclasses.fields(Solution)}
+    return Solution(**{**fields, "status": Status.SUCCESS, "history": history})
+
+
+def _layout(sol) -> dict:
+    return {
+        "none": sorted(f.name for f in dataclasses.fields(Solution) if getattr(sol, f.name) is None),
+        "details": list(sol.history.details),
+    }
+
+
+def _structure(layout) -> str:
+    return _ADDRESS.sub("", str(jax.tree.structure(_template(layout))))
+
+
+def _path(key) -> str:
+    assert _folder is not None
+    return os.path.join(_folder, f"solve-{key}.jaxexport")
+
+
+def _write(key, layout, exported) -> None:
+    header = json.dumps({"format": FORMAT, "key": key, "layout": layout, "structure": _structure(layout)})
+    data = _MAGIC + header.encode() + b"\n" + bytes(exported.serialize())
+    try:
+        fd, tmp = tempfile.mkstemp(dir=_folder, prefix=".tmp-")
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, _path(key))
+    except OSError:
+        pass  # (a read-only or full disk: the solve goes on without the entry)
+
+
+def _read(key, args):
+    """`(exported, layout)` of the entry for `key`, or None: missing, corrupt, foreign (another
+    key, format or structure) or for other argument shapes."""
+    try:
+        with open(_path(key), "rb") as f:
+            data = f.read()
+        if not data.startswith(_MAGIC):
+            return None
+        header, _, blob = data[len(_MAGIC) :].partition(b"\n")
+        meta = json.loads(header)
+        if meta.get("format") != FORMAT or meta.get("key") != key:
+            return None
+        layout = meta["layout"]
+        if _structure(layout) != meta["structure"]:
+            return None
+        exported = jax.export.deserialize(bytearray(blob))
+        avals = [(tuple(a.shape), np.dtype(a.dtype)) for a in exported.in_avals]
+        if avals != [(tuple(np.shape(x)), np.dtype(x.dtype)) for x in args]:
+            return None
+        return exported, layout
+    except Exception:  # (any unreadable entry: trace instead)
+        return None
+
+
+def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
+    """`run(solver, problem, control, a0, simulator, max_steps)` (the driver) through the
+    exported program: from this process' memory, else from disk, else exported now and
+    written. Returns None where the program cannot be exported (the caller solves as usual)."""
+    dynamic, static = eqx.partition((problem, control), eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    args = [a0, *leaves]
+    try:
+        static_leaves, static_def = jax.tree.flatten(static)  # (as `jax.jit` keys its static arguments)
+        shapes = tuple((np.shape(x), x.dtype) for x in args)
+        memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes)
+        hash(memo_key)
+    except TypeError:  # (an unhashable static part: no memory, the disk only)
+        memo_key = None
+    entry = _memory.get(memo_key) if memo_key is not None else None
+    if entry is None:
+        key = _key(solver, problem, control, a0, simulator, max_steps, dynamic, static)
+        found = _read(key, args)
+        if found is None:
+
+            def flat(a0, *leaves):
+                p, c = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
+                sol = run(solver, p, c, a0, simulator, max_steps)
+                flat.layout = _layout(sol)
+                flat.structure = _ADDRESS.sub("", str(jax.tree.structure(sol)))
+                return jax.tree.leaves(sol)
+
+            try:
+                exported = jax.export.export(jax.jit(flat))(*args)
+            except Exception:  # (e.g. a host callback: not exportable)
+                return None
+            if flat.structure != _structure(flat.layout):  # (a result this module cannot rebuild)
+                return None
+            found = exported, flat.layout
+            _write(key, flat.layout, exported)
+        exported, layout = found
+        entry = jax.jit(exported.call), jax.tree.structure(_template(layout))
+        try:
+            out = entry[0](*args)  # (the first call lowers the stored module: it may be corrupt)
+        except Exception:
+            try:
+                os.remove(_path(key))  # (so that the next run exports it again)
+            except OSError:
+                pass
+            return None
+        if memo_key is not None:
+            _memory[memo_key] = entry
+        return jax.tree.unflatten(entry[1], out)
+    call, structure = entry
+    return jax.tree.unflatten(structure, call(*args))

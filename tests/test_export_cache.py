@@ -1,0 +1,98 @@
+"""`jt.enable_solve_cache` (issue 53): a script run again on an unchanged problem answers from
+the exported program on disk without tracing the solve; a changed problem traces again."""
+
+import glob
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("flatbuffers")  # (jax.export's serializer; without it the cache stays off)
+
+_SCRIPT = """
+import json, sys
+import numpy as np
+import jaxtraj as jt
+import jaxtraj._driver as driver
+from jaxtraj._fingerprint import problem_fingerprint
+
+folder, gain = sys.argv[1], float(sys.argv[2])
+jt.enable_compilation_cache(folder + "/xla")
+assert jt.enable_solve_cache(folder + "/export")
+
+calls = [0]  # the dynamics runs only when something traces it
+
+def f(t, x, u, args):
+    calls[0] += 1
+    return gain * u
+
+loops, run_loop = [0], driver.run_loop  # traces of the solver's loop
+
+def counted(*a, **k):
+    loops[0] += 1
+    return run_loop(*a, **k)
+
+driver.run_loop = counted
+problem = jt.Problem(
+    f, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+    running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0, name="gain",
+)
+control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+simulator = jt.RK4(5)
+start = calls[0]
+sol = jt.solve(problem, control, np.zeros(control.num_params), simulator=simulator)
+during = calls[0] - start
+start = calls[0]
+problem_fingerprint(problem, control, simulator)
+print(json.dumps({
+    "during": during, "fingerprint": calls[0] - start, "loops": loops[0], "status": jt.status_name(sol.status),
+    "params": sol.params.tobytes().hex(), "objective": float(sol.objective).hex(), "steps": int(sol.steps),
+}))
+"""
+
+
+def _run(folder, gain):
+    proc = subprocess.run(
+        [sys.executable, "-c", _SCRIPT, str(folder), str(gain)], capture_output=True, text=True, env=dict(os.environ)
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_rerun_answers_from_disk_and_a_changed_problem_traces_again(tmp_path):
+    first = _run(tmp_path, 2.0)
+    assert first["status"] == "SUCCESS"
+    assert first["loops"] == 1 and first["during"] > first["fingerprint"]  # traced and exported
+    assert len(glob.glob(str(tmp_path / "export" / "solve-*.jaxexport"))) == 1
+
+    again = _run(tmp_path, 2.0)
+    assert again["loops"] == 0  # the solve was not traced
+    assert again["during"] == again["fingerprint"]  # the dynamics was traced by the key only
+    for field in ("params", "objective", "steps", "status"):
+        assert again[field] == first[field]  # bit for bit
+
+    changed = _run(tmp_path, 3.0)  # another constant in the dynamics
+    assert changed["loops"] == 1 and changed["during"] > changed["fingerprint"]
+    assert changed["params"] != first["params"]
+    assert len(glob.glob(str(tmp_path / "export" / "solve-*.jaxexport"))) == 2
+
+    entries = glob.glob(str(tmp_path / "export" / "solve-*.jaxexport"))
+    for corrupt in (_truncate, _scramble_header):  # a corrupt entry is ignored: traced again, the same answer
+        for entry in entries:
+            corrupt(entry)
+        after = _run(tmp_path, 2.0)
+        assert after["loops"] == 1
+        assert after["params"] == first["params"] and after["objective"] == first["objective"]
+
+
+def _truncate(path):
+    with open(path, "r+b") as f:
+        f.truncate(2 * os.path.getsize(path) // 3)
+
+
+def _scramble_header(path):
+    with open(path, "r+b") as f:
+        f.seek(40)
+        f.write(b"garbage" * 10)
