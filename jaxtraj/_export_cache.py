@@ -211,7 +211,10 @@ def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
         memo_key = None
     entry = _memory.get(memo_key) if memo_key is not None else None
     if entry is None:
-        key = _key(solver, problem, control, a0, simulator, max_steps, dynamic, static)
+        try:
+            key = _key(solver, problem, control, a0, simulator, max_steps, dynamic, static)
+        except Exception:  # (e.g. a function closing over a tracer, under the user's grad)
+            return None
         found = _read(key, args)
         if found is None:
 

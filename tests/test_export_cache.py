@@ -96,3 +96,38 @@ def _scramble_header(path):
     with open(path, "r+b") as f:
         f.seek(40)
         f.write(b"garbage" * 10)
+
+
+def test_cached_solve_is_the_plain_solve_and_derivatives_take_the_plain_path(tmp_path):
+    import jax
+    import numpy as np
+
+    import jaxtraj as jt
+
+    def problem(gain):
+        return jt.Problem(
+            lambda t, x, u, args: args["gain"] * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",),
+            num_controls=1, running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0, args={"gain": gain},
+        )  # fmt: skip
+
+    control = problem(2.0).parametrize(jt.controls.PiecewiseLinear(4))
+    a0, simulator = np.zeros(control.num_params), jt.RK4(5)
+    solve = lambda gain: jt.solve(problem(gain), control, a0, simulator=simulator)
+    grad = jax.grad(lambda gain: solve(gain).objective)
+    plain, plain_grad = solve(jnp_float(2.0)), grad(jnp_float(2.0))
+    try:
+        assert jt.enable_solve_cache(tmp_path) == str(tmp_path)
+        cached = solve(jnp_float(2.0))
+        assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 1
+        same = jax.tree.map(lambda x, y: np.array_equal(x, y, equal_nan=True), plain, cached)
+        assert all(jax.tree.leaves(same)) and type(cached.status) is type(plain.status)
+        assert grad(jnp_float(2.0)) == plain_grad != 0.0  # (under grad: the differentiable path, no entry)
+        assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 1
+    finally:
+        jt.disable_solve_cache()
+
+
+def jnp_float(x):
+    import jax.numpy as jnp
+
+    return jnp.asarray(x, jnp.float64)
