@@ -7,9 +7,9 @@ all concrete (not under the user's `jit`, `vmap` or a derivative, `progress=0`) 
 exported program of `_driver.run` keyed on the problem's fingerprint (`_fingerprint.
 problem_fingerprint`: what the problem computes, not its names), the static configuration
 of problem and control, the solver, the simulator, `max_steps`, the shapes and dtypes of the
-arrays, the JAX and jaxlib versions, jaxtraj's source and the backend. A miss exports the program
-once (the trace and lowering a solve pays anyway) and writes it atomically (a temporary file
-renamed). A corrupt, foreign or unreadable entry is ignored: the solve traces as it would
+arrays (not their values: they are the program's inputs), the JAX and jaxlib versions,
+jaxtraj's source and the backend. A miss exports the program once (the trace and lowering a
+solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt, foreign or unreadable entry is ignored: the solve traces as it would
 without the cache. Its XLA compile is kept by the compilation cache, which this turns on.
 
 The cached path serves the primal solve only: a derivative of `jt.solve` (its arguments are
@@ -105,11 +105,14 @@ def usable(problem, control, a0, progress) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((problem, control, a0)))
 
 
-def _key(solver, problem, control, a0, simulator, max_steps, dynamic, static) -> str:
+def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     h = hashlib.sha256(FORMAT.encode())
     for part in (jax.__version__, jaxlib.__version__, _version(), jax.default_backend(), str(max_steps)):
         h.update(part.encode() + b"\0")
-    h.update(problem_fingerprint(problem, control, simulator).encode())
+    # the problem's and control's arrays are the program's inputs, not part of it: their
+    # values (zeros here) stay out of the key, so that new `args` or `x0` hit the entry
+    blank = eqx.combine(jax.tree.map(lambda x: np.zeros(np.shape(x), x.dtype), dynamic), static)
+    h.update(problem_fingerprint(*blank, simulator).encode())
     # (the arrays by dtype and shape: their values are the program's inputs)
     h.update(static_fingerprint((static, dynamic, a0, solver, simulator)).encode())
     return h.hexdigest()
@@ -212,7 +215,7 @@ def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
     entry = _memory.get(memo_key) if memo_key is not None else None
     if entry is None:
         try:
-            key = _key(solver, problem, control, a0, simulator, max_steps, dynamic, static)
+            key = _key(solver, a0, simulator, max_steps, dynamic, static)
         except Exception:  # (e.g. a function closing over a tracer, under the user's grad)
             return None
         found = _read(key, args)

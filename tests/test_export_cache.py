@@ -18,7 +18,7 @@ import jaxtraj as jt
 import jaxtraj._driver as driver
 from jaxtraj._fingerprint import problem_fingerprint
 
-folder, gain = sys.argv[1], float(sys.argv[2])
+folder, gain, x0 = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
 jt.enable_compilation_cache(folder + "/xla")
 assert jt.enable_solve_cache(folder + "/export")
 
@@ -36,7 +36,7 @@ def counted(*a, **k):
 
 driver.run_loop = counted
 problem = jt.Problem(
-    f, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+    f, np.full(1, x0), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
     running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0, name="gain",
 )
 control = problem.parametrize(jt.controls.PiecewiseLinear(4))
@@ -53,9 +53,12 @@ print(json.dumps({
 """
 
 
-def _run(folder, gain):
+def _run(folder, gain, x0=0.0):
     proc = subprocess.run(
-        [sys.executable, "-c", _SCRIPT, str(folder), str(gain)], capture_output=True, text=True, env=dict(os.environ)
+        [sys.executable, "-c", _SCRIPT, str(folder), str(gain), str(x0)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -72,6 +75,11 @@ def test_rerun_answers_from_disk_and_a_changed_problem_traces_again(tmp_path):
     assert again["during"] == again["fingerprint"]  # the dynamics was traced by the key only
     for field in ("params", "objective", "steps", "status"):
         assert again[field] == first[field]  # bit for bit
+
+    start = _run(tmp_path, 2.0, x0=0.5)  # another initial state: the program's input, not part of it
+    assert start["loops"] == 0 and start["during"] == start["fingerprint"]
+    assert start["status"] == "SUCCESS" and start["params"] != first["params"]
+    assert len(glob.glob(str(tmp_path / "export" / "solve-*.jaxexport"))) == 1
 
     changed = _run(tmp_path, 3.0)  # another constant in the dynamics
     assert changed["loops"] == 1 and changed["during"] > changed["fingerprint"]
