@@ -9,8 +9,14 @@ problem_fingerprint`: what the problem computes, not its names), the static conf
 of problem and control, the solver, the simulator, `max_steps`, the shapes and dtypes of the
 arrays (not their values: they are the program's inputs), the JAX and jaxlib versions,
 jaxtraj's source and the backend. A miss exports the program once (the trace and lowering a
-solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt, foreign or unreadable entry is ignored: the solve traces as it would
-without the cache. Its XLA compile is kept by the compilation cache, which this turns on.
+solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt, foreign
+or unreadable entry is ignored: the solve traces as it would without the cache. Its XLA
+compile is kept by the compilation cache, which this turns on.
+
+A function rather than a `cache=` argument of `jt.solve`: a script turns it on once, as it
+does the compilation cache it relies on; `jt.solve`'s signature, its jitted body and its
+derivative rule stay as they are (the cached path is a branch before them); and every call
+site of a script (examples, helper code) gains it without being edited.
 
 The cached path serves the primal solve only: a derivative of `jt.solve` (its arguments are
 tracers then) takes the ordinary, differentiable path. Entries are JAX's own serialization
