@@ -26,14 +26,16 @@ tracers then) takes the ordinary, differentiable path. Entries are JAX's own ser
 import dataclasses
 import functools
 import hashlib
+import importlib.util
 import json
 import os
 import re
 import tempfile
+from typing import cast
 
 import equinox as eqx
 import jax
-import jaxlib
+import jax.core
 import numpy as np
 
 from ._cache import default_cache_folder, enable_compilation_cache
@@ -50,6 +52,7 @@ _folder: str | None = None
 #: Exported programs of this process by the static part of the solve (what `jax.jit` keys
 #: on: functions by identity), so that a warm solve pays no fingerprint.
 _memory: dict = {}
+_UNEXPORTABLE = object()
 
 
 def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
@@ -83,11 +86,11 @@ def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
     if not isinstance(folder, str | os.PathLike):
         raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
     folder = os.fspath(folder)
+    if importlib.util.find_spec("flatbuffers") is None:  # (jax.export's serializer needs it)
+        return None
     try:
-        import flatbuffers  # noqa: F401  (jax.export's serializer needs it)
-
         os.makedirs(folder, exist_ok=True)
-    except (ImportError, OSError):
+    except OSError:
         return None
     if not jax.config.jax_compilation_cache_dir:  # pyright: ignore[reportAttributeAccessIssue]
         enable_compilation_cache()
@@ -113,15 +116,22 @@ def usable(problem, control, a0, progress) -> bool:
 
 def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     h = hashlib.sha256(FORMAT.encode())
-    for part in (jax.__version__, jaxlib.__version__, _version(), jax.default_backend(), str(max_steps)):
+    for part in (jax.__version__, _jaxlib_version(), _version(), jax.default_backend(), str(max_steps)):
         h.update(part.encode() + b"\0")
     # the problem's and control's arrays are the program's inputs, not part of it: their
     # values (zeros here) stay out of the key, so that new `args` or `x0` hit the entry
-    blank = eqx.combine(jax.tree.map(lambda x: np.zeros(np.shape(x), x.dtype), dynamic), static)
-    h.update(problem_fingerprint(*blank, simulator).encode())
+    problem, control = eqx.combine(jax.tree.map(lambda x: np.zeros(np.shape(x), x.dtype), dynamic), static)
+    h.update(problem_fingerprint(problem, control, simulator).encode())
     # (the arrays by dtype and shape: their values are the program's inputs)
     h.update(static_fingerprint((static, dynamic, a0, solver, simulator)).encode())
     return h.hexdigest()
+
+
+@functools.cache
+def _jaxlib_version() -> str:
+    from importlib.metadata import version
+
+    return version("jaxlib")
 
 
 @functools.cache
@@ -143,7 +153,7 @@ def _version() -> str:
 def _template(layout):
     """A `Solution` of placeholder leaves with `layout`'s structure (`_layout`), built
     without tracing anything."""
-    z = np.zeros(())
+    z = cast(jax.Array, np.zeros(()))  # (a placeholder leaf: no JAX array, no dispatch)
     history = History(
         **{f.name: z for f in dataclasses.fields(History) if f.name != "details"},
         details={k: z for k in layout["details"]},
@@ -213,12 +223,14 @@ def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
     args = [a0, *leaves]
     try:
         static_leaves, static_def = jax.tree.flatten(static)  # (as `jax.jit` keys its static arguments)
-        shapes = tuple((np.shape(x), x.dtype) for x in args)
+        shapes = tuple((np.shape(x), x.dtype, getattr(x, "weak_type", False)) for x in args)
         memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes)
         hash(memo_key)
     except TypeError:  # (an unhashable static part: no memory, the disk only)
         memo_key = None
     entry = _memory.get(memo_key) if memo_key is not None else None
+    if entry is _UNEXPORTABLE:
+        return None
     if entry is None:
         try:
             key = _key(solver, a0, simulator, max_steps, dynamic, static)
@@ -226,22 +238,26 @@ def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
             return None
         found = _read(key, args)
         if found is None:
+            seen = {}
 
             def flat(a0, *leaves):
                 p, c = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
                 sol = run(solver, p, c, a0, simulator, max_steps)
-                flat.layout = _layout(sol)
-                flat.structure = _ADDRESS.sub("", str(jax.tree.structure(sol)))
+                seen["layout"] = _layout(sol)
+                seen["structure"] = _ADDRESS.sub("", str(jax.tree.structure(sol)))
                 return jax.tree.leaves(sol)
 
             try:
                 exported = jax.export.export(jax.jit(flat))(*args)
+                exportable = seen["structure"] == _structure(seen["layout"])  # (else: cannot rebuild it)
             except Exception:  # (e.g. a host callback: not exportable)
+                exportable = False
+            if not exportable:
+                if memo_key is not None:  # (not tried again in this process)
+                    _memory[memo_key] = _UNEXPORTABLE
                 return None
-            if flat.structure != _structure(flat.layout):  # (a result this module cannot rebuild)
-                return None
-            found = exported, flat.layout
-            _write(key, flat.layout, exported)
+            found = exported, seen["layout"]
+            _write(key, seen["layout"], exported)
         exported, layout = found
         entry = jax.jit(exported.call), jax.tree.structure(_template(layout))
         try:
