@@ -26,11 +26,11 @@ trace time only).
 
 `--pieces` adds the default solver's kernels compiled apart (evaluation, exact Hessian, QP
 step): what each costs of the whole program. `--cache` runs the default solver's first call in
-three new processes that share one empty `jt.enable_compilation_cache` folder: a script run
-again.
+three new processes that share one empty folder of `jt.enable_compilation_cache`, and three that
+add `jt.enable_solve_cache`: a script run again (`--cache-only`: that table alone).
 
 Run: `python benchmarks/first_answer.py [--case 4 | --problem bryson-denham] [--repeats 3]
-[--pieces] [--cache]` or `python benchmarks/first_answer.py --size [--no-compile]`.
+[--pieces] [--cache | --cache-only]` or `python benchmarks/first_answer.py --size [--no-compile]`.
 """
 
 import argparse
@@ -160,7 +160,9 @@ _CACHED_RUN = """
 import sys, time
 import jax, jaxtraj as jt
 from jaxtraj.problems import earth_mars
-jt.enable_compilation_cache(sys.argv[1])
+jt.enable_compilation_cache(sys.argv[1] + "/xla")
+if sys.argv[3] == "export":
+    jt.enable_solve_cache(sys.argv[1] + "/export")
 problem, control, a0 = earth_mars.thesis_case(int(sys.argv[2]))
 t = time.perf_counter()
 sol = jt.solve(problem, control, a0, simulator=jt.RK4(100))
@@ -170,18 +172,29 @@ print(time.perf_counter() - t, jt.status_name(sol.status))
 
 
 def cached_runs(case, runs=3):
-    """The default solver's first call in `runs` new processes sharing one empty folder of
-    `jt.enable_compilation_cache`: a script run again loads its programs from disk."""
+    """The default solver's first call in `runs` new processes sharing one empty folder, with
+    `jt.enable_compilation_cache` alone (a script run again loads its compiled programs from
+    disk, but traces and lowers them) and with `jt.enable_solve_cache` too (it loads the
+    exported solve: no trace), the two kinds of process alternating."""
     import subprocess
     import tempfile
 
-    print("\n| process (one compilation cache folder) | first call of jt.solve (s) | status |\n|---|---:|---|")
-    with tempfile.TemporaryDirectory() as folder:
+    print("\n| process (one folder per column) | compilation cache (s) | + solve cache (s) | status |")
+    print("|---|---:|---:|---|")
+    with tempfile.TemporaryDirectory() as xla, tempfile.TemporaryDirectory() as both:
         for k in range(runs):
-            out = subprocess.run(
-                [sys.executable, "-c", _CACHED_RUN, folder, str(case)], capture_output=True, text=True, check=True
-            ).stdout.split()
-            print(f"| {k + 1}{' (empty folder)' if k == 0 else ''} | {float(out[0]):.2f} | {out[1]} |", flush=True)
+            row = []
+            for folder, mode in ((xla, "xla"), (both, "export")):
+                out = subprocess.run(
+                    [sys.executable, "-c", _CACHED_RUN, folder, str(case), mode],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                ).stdout.split()
+                row.append(out)
+            first = " (empty folder)" if k == 0 else ""
+            status = "/".join(sorted({r[1] for r in row}))
+            print(f"| {k + 1}{first} | {float(row[0][0]):.2f} | {float(row[1][0]):.2f} | {status} |", flush=True)
 
 
 def warm(solver, problem, control, a0, simulator, repeats):
@@ -252,8 +265,9 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--pieces", action="store_true", help="also the default solver's kernels, compiled apart")
     parser.add_argument(
-        "--cache", action="store_true", help="also the default's first call in new processes with a compilation cache"
+        "--cache", action="store_true", help="also the default's first call in new processes with the caches on disk"
     )
+    parser.add_argument("--cache-only", action="store_true", help="--cache without the solvers' table")
     parser.add_argument("--size", action="store_true", help="the first call against segments and controls (issue 53)")
     parser.add_argument("--no-compile", action="store_true", help="with --size: HLO lines and trace time only")
     args = parser.parse_args()
@@ -264,6 +278,13 @@ def main():
             f"{time.strftime('%Y-%m-%d')}\n"
         )
         size_study(not args.no_compile)
+        return
+    if args.cache_only:
+        print(f"# Earth-Mars case {args.case}, RK4(100), the default; {platform.processor() or platform.machine()}, ")
+        print(
+            f"# {os.cpu_count()} cores, jax {jax.__version__}; command: python {' '.join(sys.argv)}; {time.strftime('%Y-%m-%d')}"
+        )
+        cached_runs(args.case, runs=4)
         return
     if args.problem:
         entry = jt.problems.classic.get(args.problem)

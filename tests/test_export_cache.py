@@ -7,9 +7,12 @@ import os
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
-pytest.importorskip("flatbuffers")  # (jax.export's serializer; without it the cache stays off)
+import jaxtraj as jt
 
 _SCRIPT = """
 import json, sys
@@ -64,7 +67,12 @@ def _run(folder, gain, x0=0.0):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # (six new processes, each tracing or loading the solve: ~35 s)
 def test_rerun_answers_from_disk_and_a_changed_problem_traces_again(tmp_path):
+    """A second process on an unchanged problem traces neither the solve's loop nor (beyond the
+    fingerprint) the dynamics, and answers bit for bit; a new initial state is an input of the
+    same program; another constant in the dynamics traces again; a truncated or scrambled
+    entry is ignored."""
     first = _run(tmp_path, 2.0)
     assert first["status"] == "SUCCESS"
     assert first["loops"] == 1 and first["during"] > first["fingerprint"]  # traced and exported
@@ -106,11 +114,10 @@ def _scramble_header(path):
         f.write(b"garbage" * 10)
 
 
+@pytest.mark.slow  # (the solve exported, its gradient twice: ~11 s)
 def test_cached_solve_is_the_plain_solve_and_derivatives_take_the_plain_path(tmp_path):
-    import jax
-    import numpy as np
-
-    import jaxtraj as jt
+    """In one process: the cached solve's every leaf equals the plain solve's; under `jax.grad`
+    the ordinary, differentiable path runs (the same gradient, no entry written)."""
 
     def problem(gain):
         return jt.Problem(
@@ -136,6 +143,4 @@ def test_cached_solve_is_the_plain_solve_and_derivatives_take_the_plain_path(tmp
 
 
 def jnp_float(x):
-    import jax.numpy as jnp
-
     return jnp.asarray(x, jnp.float64)
