@@ -214,6 +214,47 @@ def _read(key, args):
         return None
 
 
+def _memo_key(solver, simulator, max_steps, treedef, static, args):
+    """This process' key of the program (as `jax.jit` keys its static arguments), or None
+    where the static part is unhashable (then the disk only)."""
+    try:
+        static_leaves, static_def = jax.tree.flatten(static)
+        shapes = tuple((np.shape(x), x.dtype, getattr(x, "weak_type", False)) for x in args)
+        memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes)
+        hash(memo_key)
+    except TypeError:
+        return None
+    return memo_key
+
+
+def _export(run, solver, simulator, max_steps, treedef, static, args):
+    """`(exported, layout)` of the driver's program at `args`, or None where it cannot be
+    exported (a host callback) or rebuilt from its layout."""
+    seen = {}
+
+    def flat(a0, *leaves):
+        p, c = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
+        sol = run(solver, p, c, a0, simulator, max_steps)
+        seen["layout"] = _layout(sol)
+        seen["structure"] = _ADDRESS.sub("", str(jax.tree.structure(sol)))
+        return jax.tree.leaves(sol)
+
+    try:
+        exported = jax.export.export(jax.jit(flat))(*args)
+    except Exception:
+        return None
+    if seen["structure"] != _structure(seen["layout"]):
+        return None
+    return exported, seen["layout"]
+
+
+def _remove(key) -> None:
+    try:
+        os.remove(_path(key))
+    except OSError:
+        pass
+
+
 def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
     """`run(solver, problem, control, a0, simulator, max_steps)` (the driver) through the
     exported program: from this process' memory, else from disk, else exported now and
@@ -221,55 +262,32 @@ def cached_solve(run, solver, problem, control, a0, simulator, max_steps):
     dynamic, static = eqx.partition((problem, control), eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
     args = [a0, *leaves]
-    try:
-        static_leaves, static_def = jax.tree.flatten(static)  # (as `jax.jit` keys its static arguments)
-        shapes = tuple((np.shape(x), x.dtype, getattr(x, "weak_type", False)) for x in args)
-        memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes)
-        hash(memo_key)
-    except TypeError:  # (an unhashable static part: no memory, the disk only)
-        memo_key = None
+    memo_key = _memo_key(solver, simulator, max_steps, treedef, static, args)
     entry = _memory.get(memo_key) if memo_key is not None else None
     if entry is _UNEXPORTABLE:
         return None
-    if entry is None:
-        try:
-            key = _key(solver, a0, simulator, max_steps, dynamic, static)
-        except Exception:  # (e.g. a function closing over a tracer, under the user's grad)
-            return None
-        found = _read(key, args)
+    if entry is not None:
+        call, structure = entry
+        return jax.tree.unflatten(structure, call(*args))
+    try:
+        key = _key(solver, a0, simulator, max_steps, dynamic, static)
+    except Exception:  # (e.g. a function closing over a tracer, under the user's grad)
+        return None
+    found = _read(key, args)
+    if found is None:
+        found = _export(run, solver, simulator, max_steps, treedef, static, args)
         if found is None:
-            seen = {}
-
-            def flat(a0, *leaves):
-                p, c = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
-                sol = run(solver, p, c, a0, simulator, max_steps)
-                seen["layout"] = _layout(sol)
-                seen["structure"] = _ADDRESS.sub("", str(jax.tree.structure(sol)))
-                return jax.tree.leaves(sol)
-
-            try:
-                exported = jax.export.export(jax.jit(flat))(*args)
-                exportable = seen["structure"] == _structure(seen["layout"])  # (else: cannot rebuild it)
-            except Exception:  # (e.g. a host callback: not exportable)
-                exportable = False
-            if not exportable:
-                if memo_key is not None:  # (not tried again in this process)
-                    _memory[memo_key] = _UNEXPORTABLE
-                return None
-            found = exported, seen["layout"]
-            _write(key, seen["layout"], exported)
-        exported, layout = found
-        entry = jax.jit(exported.call), jax.tree.structure(_template(layout))
-        try:
-            out = entry[0](*args)  # (the first call lowers the stored module: it may be corrupt)
-        except Exception:
-            try:
-                os.remove(_path(key))  # (so that the next run exports it again)
-            except OSError:
-                pass
+            if memo_key is not None:  # (not tried again in this process)
+                _memory[memo_key] = _UNEXPORTABLE
             return None
-        if memo_key is not None:
-            _memory[memo_key] = entry
-        return jax.tree.unflatten(entry[1], out)
-    call, structure = entry
-    return jax.tree.unflatten(structure, call(*args))
+        _write(key, found[1], found[0])
+    exported, layout = found
+    call, structure = jax.jit(exported.call), jax.tree.structure(_template(layout))
+    try:
+        out = call(*args)  # (the first call lowers the stored module: it may be corrupt)
+    except Exception:
+        _remove(key)  # (so that the next run exports it again)
+        return None
+    if memo_key is not None:
+        _memory[memo_key] = call, structure
+    return jax.tree.unflatten(structure, out)
