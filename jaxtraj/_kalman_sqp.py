@@ -380,7 +380,9 @@ class KalmanSQP(AbstractSolver):
 
             def again(carry):
                 k, (*_, inconsistent) = carry
-                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent)) | ((k == 2) & inconsistent)
+                # (the third round only where it softens a row: else it repeats the second)
+                third = (k == 2) & inconsistent & jnp.any(softened)
+                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent)) | third
 
             unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False))
             _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
