@@ -129,6 +129,11 @@ def keep_knots_ordered(
     return da * jnp.min(limit, initial=1.0), P
 
 
+#: `dual_active_set` forms P_W and M again at every this-many-th row departure and downdates
+#: them at the others.
+REFACTOR_EVERY = 8
+
+
 #: KalmanSearch's `dependence` in `observe_worst`: a path row whose variance left by the rows
 #: already observed is below this fraction of its prior variance is skipped.
 PATH_DEPENDENCE = 1e-4
@@ -233,7 +238,8 @@ def dual_active_set(
     # W's rows live in n slots (rows independent of E's and of each other are at most n), with
     # G = C_W P (one slot per row), M = S^-1, S = C_W P C_W^T + R_W, and P_W = P - G^T M G,
     # the covariance after filtering W's rows, kept up to date by rank-one changes when a row
-    # joins (formed again when one leaves): a round costs O(n^2) (issue 49: refiltering W's rows and a
+    # joins or leaves (formed again at every `REFACTOR_EVERY`-th departure): a round costs
+    # O(n^2) (issue 49: refiltering W's rows and a
     # least-squares solve for the multipliers in every round made a 124-parameter QP of a few
     # hundred rounds take 15 s). Free slots: zero rows of G, unit rows of M.
     # Along z = P_W c the model's gradient changes by B z - c = -C_W^T M G c (B the inverse of
@@ -241,7 +247,7 @@ def dual_active_set(
     # (the solution of [H; C_W]^T rho = B z - c, exact where those rows are independent).
 
     def body(state):
-        d, W, u, p, it, _, skipped, PW, M, G, slot_row, rise = state
+        d, W, u, p, it, _, skipped, PW, M, G, slot_row, rise, since = state
         s = C + C_a @ d
         v = jnp.where(W | skipped, -jnp.inf, s)
         worst = jnp.argmax(v)
@@ -279,14 +285,25 @@ def dual_active_set(
         M = jnp.where(full, M - jnp.diag(e_j.astype(M.dtype)) + jnp.outer(vj, vj) / gamma, M)
         G = jnp.where(full & e_j[:, None], P @ c, G)
         slot_row = jnp.where(full & e_j, p, slot_row)
-        # k leaves W: its slot is freed and P_W and M are formed again from the rows left (the
-        # filter over the slots, S inverted): downdating them by rank-one changes drifted over
-        # ~120 rounds (a QP of the free-flying robot under SSE4.2 arithmetic ended 404 past a
-        # bound, its trust region STALLED; issue 49). (Rows leave often where the step's box
-        # binds: 60-200 of 300-500 rounds in the robot's early QPs, each a refactor.)
+        # k leaves W: its slot i is freed, and P_W and M lose its row by the exact rank-one
+        # downdate (M's column m_i: M - m_i m_i^T / M_ii, P_W + (G^T m_i)(G^T m_i)^T / M_ii).
+        # Every `REFACTOR_EVERY`-th departure forms them again instead, from the rows left
+        # (the filter over the slots, S inverted): downdates alone drifted over ~120 rounds
+        # (a QP of the free-flying robot under SSE4.2 arithmetic ended 404 past a bound, its
+        # trust region STALLED; issue 49), and a refactor at every departure cost 3.4 ms at
+        # 124 parameters, 100-200 times in the robot's QPs (most of its solve).
         e_i = jnp.arange(n) == jnp.argmax(slot_row == k)
+        m_i = M @ e_i.astype(M.dtype)
+        m_ii = jnp.where(drop, m_i @ e_i.astype(M.dtype), 1.0)
+        y = G.T @ m_i
         G = jnp.where(drop & e_i[:, None], 0.0, G)
         slot_row = jnp.where(drop & e_i, -1, slot_row)
+        downdated = drop & (since + 1 < REFACTOR_EVERY)
+        PW = jnp.where(downdated, PW + jnp.outer(y, y) / m_ii, PW)
+        M_down = M - jnp.outer(m_i, m_i) / m_ii
+        M_down = jnp.where(e_i[:, None] | e_i[None, :], jnp.diag(e_i.astype(M.dtype)), M_down)
+        M = jnp.where(downdated, M_down, M)
+        since = jnp.where(drop, jnp.where(downdated, since + 1, 0), since)
 
         def refactor(slot_row):
             valid, at = slot_row >= 0, jnp.maximum(slot_row, 0)
@@ -294,9 +311,9 @@ def dual_active_set(
             PW = sequential_update(jnp.zeros_like(d), P, rows, jnp.zeros(n, d.dtype), r[at], active=valid)[1]
             return PW, _slot_inverse(rows @ P @ rows.T + jnp.diag(r[at]), valid)
 
-        PW, M = lax.cond(drop, refactor, lambda _: (PW, M), slot_row)
+        PW, M = lax.cond(drop & ~downdated, refactor, lambda _: (PW, M), slot_row)
         p = jnp.where(full | finished | stuck, -1, p)
-        return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row, rise
+        return d, W, u, p, it + 1, finished, skipped, 0.5 * (PW + PW.T), M, G, slot_row, rise, since
 
     bound = jnp.asarray(jnp.inf if dual_bound is None else dual_bound, d.dtype)
 
@@ -318,8 +335,8 @@ def dual_active_set(
     else:
         d, W, u, PW, M, G, slot_row = _warm_start(d, P, C, C_a, r, prior_var, dependence, rank_left, warm & ~pinned)
     rise = 0.5 * jnp.sum(jnp.where(W, u * at_start, 0.0))
-    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), pinned, PW, M, G, slot_row, rise)
-    d, W, u, _, rounds, *_, rise = lax.while_loop(cond, body, init)
+    init = (d, W, u, jnp.array(-1), jnp.array(0), jnp.array(False), pinned, PW, M, G, slot_row, rise, jnp.array(0))
+    d, W, u, _, rounds, *_, rise, _ = lax.while_loop(cond, body, init)
     return W, u, jnp.where(W, -jnp.inf, C + C_a @ d), rounds, rise
 
 

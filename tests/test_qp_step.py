@@ -13,7 +13,7 @@ import pytest
 from hypothesis import assume, given, settings, strategies as st
 
 from jaxtraj import Evaluation, KalmanSQP
-from jaxtraj._kalman import dual_active_set, inequality_step, sequential_update
+from jaxtraj._kalman import REFACTOR_EVERY, dual_active_set, inequality_step, sequential_update
 from jaxtraj._kalman_sqp import ELASTIC_PINNED
 
 R_REL = 1e-12  # KalmanSQP's default relative noise
@@ -111,6 +111,22 @@ def test_inequality_step_is_the_qp_solution(seed, n, me, mi, neighbours, warm):
     residual = B @ d + g + C_a.T @ u
     lam_E = np.linalg.lstsq(H.T, -residual, rcond=None)[0] if me else np.zeros(0)
     assert np.max(np.abs(residual + H.T @ lam_E)) <= 1e-7 * (1.0 + np.max(np.abs(g)) + np.max(np.abs(u), initial=0.0))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_qp_with_many_departures_is_the_qp_solution(seed):
+    """30 parameters, 2 equalities, 120 rows from an empty working set: rows leave W 40-55
+    times, so P_W and M go through many rank-one downdates between their refactorizations
+    (`REFACTOR_EVERY`); the step is still qpOASES's."""
+    n, me, mi = 30, 2, 120
+    B, g, H, E, C, C_a = _random_qp(seed, n, me, mi, False)
+    args = [jnp.asarray(v) for v in (B, g, H, E, C, C_a)]
+    _, (W, _, _, rounds, _), _ = _dual(n, me, mi)(*args, jnp.zeros(mi, bool), jnp.inf)
+    departures = (int(rounds) - int(jnp.sum(W))) // 2  # each round adds a row or drops one
+    assert departures >= 4 * REFACTOR_EVERY
+    d = np.asarray(_step(n, me, mi)(*args, jnp.zeros(mi, bool))[0])
+    x = _qpoases(B, g, H, E, C, C_a)
+    assert np.max(np.abs(d - x)) <= 1e-6 * (1.0 + np.max(np.abs(x)))
 
 
 @functools.cache
