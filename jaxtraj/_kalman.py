@@ -131,7 +131,7 @@ def keep_knots_ordered(
 
 #: `dual_active_set` forms P_W and M again at every this-many-th row departure and downdates
 #: them at the others.
-REFACTOR_EVERY = 8
+REFACTOR_EVERY = 4
 
 
 #: KalmanSearch's `dependence` in `observe_worst`: a path row whose variance left by the rows
@@ -291,7 +291,10 @@ def dual_active_set(
         # (the filter over the slots, S inverted): downdates alone drifted over ~120 rounds
         # (a QP of the free-flying robot under SSE4.2 arithmetic ended 404 past a bound, its
         # trust region STALLED; issue 49), and a refactor at every departure cost 3.4 ms at
-        # 124 parameters, 100-200 times in the robot's QPs (most of its solve).
+        # 124 parameters, 100-200 times in the robot's QPs (most of its solve). With a
+        # refactor every 4th the robot takes the same 13 iterations from its start and its
+        # 1e-12 / 1e-10 perturbations under three ISA settings as with one at every
+        # departure; every 8th, 10-21 (docs/history.md, session 43).
         e_i = jnp.arange(n) == jnp.argmax(slot_row == k)
         m_i = M @ e_i.astype(M.dtype)
         m_ii = jnp.where(drop, m_i @ e_i.astype(M.dtype), 1.0)
