@@ -8,6 +8,7 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend.core import ClosedJaxpr, Jaxpr
 
 from ._bounds import bound_rows
 from ._sensitivity import path_values
@@ -50,13 +51,27 @@ def static_fingerprint(tree) -> str:
     return h.hexdigest()
 
 
+def _nested_consts(jaxpr):
+    """The constants of the closed jaxprs nested in `jaxpr`'s equations (a `jax.jit` helper's,
+    a `cond` branch's): its printed form shows their types, not their values."""
+    for eqn in jaxpr.eqns:
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, tuple | list) else (param,):
+                if isinstance(sub, ClosedJaxpr):
+                    yield from sub.consts
+                    yield from _nested_consts(sub.jaxpr)
+                elif isinstance(sub, Jaxpr):
+                    yield from _nested_consts(sub)
+
+
 def problem_fingerprint(problem, control, simulator) -> str:
     """SHA-256 of what `problem` computes under `control` and `simulator`: the jaxpr of the
     final state, path rows, objective, terminal equalities and inequalities and bound rows at
     parameters of the control's shape, together with their forward-mode derivatives (so a
     `jax.custom_jvp` rule is in it), and every array it closes over (`args`, `x0`, captured
-    constants). Functions enter by what they compute, not by name: two lambdas with other
-    bodies, or one factory closing over other constants, differ; the same file loaded again
+    constants, those of a `jax.jit` helper included). Functions enter by what they compute,
+    not by name: two lambdas with other bodies, or one factory closing over other constants,
+    differ; the same file loaded again
     in another process, or the problem renamed (its `name`, state or constraint names), does
     not. An array's dtype or weak type counts (`jnp.array(1.0)` is weakly typed,
     `np.array(1.0)` is not: XLA compiles them differently). Not seen: a host callback's
@@ -83,6 +98,6 @@ def problem_fingerprint(problem, control, simulator) -> str:
     a = jax.ShapeDtypeStruct((control.num_params,), jnp.float64)
     closed = jax.make_jaxpr(lambda a, t: jax.jvp(values, (a,), (t,)))(a, a)
     h = hashlib.sha256(_ADDRESS.sub("", str(closed.jaxpr)).encode())
-    for const in closed.consts:
+    for const in (*closed.consts, *_nested_consts(closed.jaxpr)):
         _update(h, const, functions=False)
     return h.hexdigest()

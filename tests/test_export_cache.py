@@ -144,3 +144,43 @@ def test_cached_solve_is_the_plain_solve_and_derivatives_take_the_plain_path(tmp
 
 def jnp_float(x):
     return jnp.asarray(x, jnp.float64)
+
+
+def _jitted_gain_problem(gain):
+    G = jnp.array([gain])
+
+    @jax.jit  # (a helper of the user's own: its closed-over constant is not printed in the jaxpr)
+    def rhs(u):
+        return G * u
+
+    return jt.Problem(
+        lambda t, x, u, args: rhs(u), np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+    )  # fmt: skip
+
+
+def test_problems_differing_only_in_a_jitted_helpers_constant_have_other_fingerprints():
+    from jaxtraj._fingerprint import problem_fingerprint
+
+    simulator = jt.RK4(5)
+    two, four = _jitted_gain_problem(2.0), _jitted_gain_problem(4.0)
+    control = two.parametrize(jt.controls.PiecewiseLinear(4))
+    assert problem_fingerprint(two, control, simulator) != problem_fingerprint(four, control, simulator)
+    assert problem_fingerprint(two, control, simulator) == problem_fingerprint(
+        _jitted_gain_problem(2.0), control, simulator
+    )
+
+
+def test_problems_differing_only_in_a_jitted_helpers_constant_do_not_share_an_entry(tmp_path):
+    """min 0.5 int u^2 subject to int gain u = 1: the objective is 0.5 / gain**2, cached or not."""
+    try:
+        assert jt.enable_solve_cache(tmp_path) == str(tmp_path)
+        for gain in (2.0, 4.0):
+            problem = _jitted_gain_problem(gain)
+            control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+            sol = jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
+            assert jt.status_name(sol.status) == "SUCCESS"
+            assert float(sol.objective) == pytest.approx(0.5 / gain**2, rel=1e-9)
+        assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 2
+    finally:
+        jt.disable_solve_cache()
