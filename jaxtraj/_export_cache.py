@@ -9,9 +9,10 @@ problem_fingerprint`: what the problem computes, not its names), the static conf
 of problem and control, the solver, the simulator, `max_steps`, the shapes and dtypes of the
 arrays (not their values: they are the program's inputs), the JAX and jaxlib versions,
 jaxtraj's source and the backend. A miss exports the program once (the trace and lowering a
-solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt, foreign
-or unreadable entry is ignored: the solve traces as it would without the cache. Its XLA
-compile is kept by the compilation cache, which this turns on.
+solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt (its
+program is checked by SHA-256), foreign or unreadable entry is ignored: the solve traces as
+it would without the cache. Its XLA compile is kept by the compilation cache, which this
+turns on.
 
 A function rather than a `cache=` argument of `jt.solve`: a script turns it on once, as it
 does the compilation cache it relies on; `jt.solve`'s signature, its jitted body and its
@@ -44,7 +45,7 @@ from ._solution import History, Solution
 from ._status import Status
 
 #: The entry format; an entry of another format is ignored.
-FORMAT = "jaxtraj-solve-cache 1"
+FORMAT = "jaxtraj-solve-cache 2"
 _MAGIC = b"JAXTRAJ-EXPORT\n"
 
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
@@ -179,8 +180,12 @@ def _path(key) -> str:
 
 
 def _write(key, layout, exported) -> None:
-    header = json.dumps({"format": FORMAT, "key": key, "layout": layout, "structure": _structure(layout)})
-    data = _MAGIC + header.encode() + b"\n" + bytes(exported.serialize())
+    blob = bytes(exported.serialize())
+    digest = hashlib.sha256(blob).hexdigest()  # (a changed byte of the program: its constants too)
+    header = json.dumps(
+        {"format": FORMAT, "key": key, "layout": layout, "structure": _structure(layout), "sha256": digest}
+    )
+    data = _MAGIC + header.encode() + b"\n" + blob
     try:
         fd, tmp = tempfile.mkstemp(dir=_folder, prefix=".tmp-")
         with os.fdopen(fd, "wb") as f:
@@ -201,6 +206,8 @@ def _read(key, args):
         header, _, blob = data[len(_MAGIC) :].partition(b"\n")
         meta = json.loads(header)
         if meta.get("format") != FORMAT or meta.get("key") != key:
+            return None
+        if meta.get("sha256") != hashlib.sha256(blob).hexdigest():  # (a flipped constant ran)
             return None
         layout = meta["layout"]
         if _structure(layout) != meta["structure"]:

@@ -184,3 +184,28 @@ def test_problems_differing_only_in_a_jitted_helpers_constant_do_not_share_an_en
         assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 2
     finally:
         jt.disable_solve_cache()
+
+
+def test_an_entry_whose_program_constant_was_changed_on_disk_is_ignored(tmp_path):
+    """A changed byte of the stored program (here the dynamics' gain 2.0 -> 3.0) that still
+    deserializes and runs is caught by the entry's checksum: the solve traces again."""
+    import struct
+
+    problem = jt.Problem(
+        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+    solve = lambda: jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
+    try:
+        jt.enable_solve_cache(tmp_path)
+        assert float(solve().objective) == pytest.approx(0.125, rel=1e-9)
+        (entry,) = tmp_path.glob("solve-*.jaxexport")
+        data = entry.read_bytes()
+        assert struct.pack("<d", 2.0) in data
+        entry.write_bytes(data.replace(struct.pack("<d", 2.0), struct.pack("<d", 3.0)))
+        jt.disable_solve_cache()
+        jt.enable_solve_cache(tmp_path)  # (a new process: nothing in memory)
+        assert float(solve().objective) == pytest.approx(0.125, rel=1e-9)
+    finally:
+        jt.disable_solve_cache()
