@@ -678,14 +678,28 @@ def check(rp, solver, a0, reference, max_steps=500):
     return "ok", int(sol.iterations), err
 
 
-def main():
+def _int_at_least(low):
+    """An argparse type: an int >= `low` (argparse names the argument in its one-line error)."""
+
+    def parse(text):
+        value = int(text)  # (a ValueError: argparse's "invalid ... value")
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an int >= {low}; got {value}")
+        return value
+
+    parse.__name__ = "int"  # (argparse: "invalid int value")
+    return parse
+
+
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=100, help="random problems per class")
-    parser.add_argument("--seed", type=int, default=0, help="first problem's seed")
-    parser.add_argument("--classes", nargs="*", default=list(CLASSES), choices=list(CLASSES))
-    parser.add_argument("--solvers", nargs="*", default=["default"], choices=sorted(SOLVERS))
+    parser.add_argument("--n", type=_int_at_least(1), default=100, help="random problems per class")
+    # (NumPy's generators take seeds >= 0 only)
+    parser.add_argument("--seed", type=_int_at_least(0), default=0, help="first problem's seed")
+    parser.add_argument("--classes", nargs="+", default=list(CLASSES), choices=list(CLASSES))
+    parser.add_argument("--solvers", nargs="+", default=["default"], choices=sorted(SOLVERS))
     parser.add_argument("--verbose", action="store_true", help="a line per solve")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     print(f"# fuzz: {args.n} random problems per class from seed {args.seed}; {platform.machine()}, ")
     print(f"# jax {jax.__version__}; {time.strftime('%Y-%m-%d')}; RK4({STEPS}); oracles: Clarabel (cvxpy), HiGHS LPs\n")
     counts = {}

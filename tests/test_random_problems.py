@@ -156,3 +156,25 @@ def test_minimum_time_with_a_reach_row_that_the_terminal_equalities_imply(seed):
         for kind, a0 in rp.starts(np.random.default_rng(10_000 + seed)).items()
     ]
     assert all(o[1] == "ok" for o in outcomes), outcomes
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--n", "0"], "--n"),
+        (["--n", "-1"], "--n"),
+        (["--seed", "-5"], "--seed"),
+        (["--solvers"], "--solvers"),
+        (["--classes"], "--classes"),
+        (["--classes", "nope"], "--classes"),
+    ],
+)
+def test_fuzz_command_line_refuses_a_bad_argument_in_one_line_naming_it(argv, named, capsys):
+    """No traceback (a negative seed reached NumPy) and no silent empty run (no problems, no
+    solvers, no classes): argparse's one-line error, exit status 2."""
+    fuzz = load_benchmark("fuzz")
+    with pytest.raises(SystemExit) as exit_:
+        fuzz.main(argv)
+    assert exit_.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f": error: argument {named}:" in last
