@@ -12,6 +12,24 @@ def default_cache_folder() -> str:
     )
 
 
+def make_folder(folder) -> str | None:
+    """`folder` (a str or os.PathLike) as a str, created if missing; None where the system
+    refuses it (permissions, a full disk). A `ValueError` naming `folder` for what is no
+    folder at all: another type, an empty path, a NUL byte, a file or a path through one."""
+    if not isinstance(folder, str | os.PathLike):  # (os' TypeError named no argument)
+        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
+    path = os.fspath(folder)
+    if not isinstance(path, str) or not path or "\0" in path:  # (b"..." paths; "" was a silent None)
+        raise ValueError(f"`folder` must be a non-empty path without NUL bytes; got {folder!r}.")
+    try:
+        os.makedirs(path, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):  # (exist_ok: a file where the folder would be)
+        raise ValueError(f"`folder` must be a folder; {path!r} is a file or a path through one.") from None
+    except OSError:
+        return None
+    return path
+
+
 def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | None:
     """Keep every compiled program on disk, so that a new Python process that runs the same
     solve again (same problem functions, control family and segment count, solver settings,
@@ -31,18 +49,16 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | N
       already given (`jax.config.jax_compilation_cache_dir`), else `$JAXTRAJ_CACHE_DIR`, else
       `$XDG_CACHE_HOME/jaxtraj/xla` (`~/.cache/jaxtraj/xla`).
 
-    **Returns:** the folder, or None if it cannot be created (nothing is changed then).
+    **Returns:** the folder, or None if it cannot be created (no permission, a full disk;
+    nothing is changed then).
 
-    **Raises:** `ValueError` when `folder` is neither None nor a path.
+    **Raises:** `ValueError` when `folder` is neither None nor a path, is empty, or names a
+    file (or a path through one).
     """
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or default_cache_folder()  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
-    if not isinstance(folder, str | os.PathLike):  # (os' TypeError named no argument)
-        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
-    folder = os.fspath(folder)
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError:
+    folder = make_folder(folder)
+    if folder is None:
         return None
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

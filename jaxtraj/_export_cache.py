@@ -39,7 +39,7 @@ import jax
 import jax.core
 import numpy as np
 
-from ._cache import default_cache_folder, enable_compilation_cache
+from ._cache import default_cache_folder, enable_compilation_cache, make_folder
 from ._fingerprint import problem_fingerprint, static_fingerprint
 from ._solution import History, Solution
 from ._status import Status
@@ -76,22 +76,20 @@ def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
     - `folder`: where the programs go (created if missing). Default `$JAXTRAJ_CACHE_DIR/
       export`, else `$XDG_CACHE_HOME/jaxtraj/export` (`~/.cache/jaxtraj/export`).
 
-    **Returns:** the folder, or None if it cannot be created or JAX's serializer is missing
-    (the `flatbuffers` package); nothing is changed then.
+    **Returns:** the folder, or None if it cannot be created (no permission, a full disk) or
+    JAX's serializer is missing (the `flatbuffers` package); nothing is changed then.
 
-    **Raises:** `ValueError` when `folder` is neither None nor a path.
+    **Raises:** `ValueError` when `folder` is neither None nor a path, is empty, or names a
+    file (or a path through one).
     """
     global _folder
     if folder is None:
         folder = os.path.join(os.path.dirname(default_cache_folder()), "export")
-    if not isinstance(folder, str | os.PathLike):
-        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
-    folder = os.fspath(folder)
     if importlib.util.find_spec("flatbuffers") is None:  # (jax.export's serializer needs it)
+        make_folder(folder)  # (a bad `folder` is still named)
         return None
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError:
+    folder = make_folder(folder)
+    if folder is None:
         return None
     if not jax.config.jax_compilation_cache_dir:  # pyright: ignore[reportAttributeAccessIssue]
         enable_compilation_cache()

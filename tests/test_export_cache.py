@@ -209,3 +209,27 @@ def test_an_entry_whose_program_constant_was_changed_on_disk_is_ignored(tmp_path
         assert float(solve().objective) == pytest.approx(0.125, rel=1e-9)
     finally:
         jt.disable_solve_cache()
+
+
+@pytest.mark.parametrize("enable", [jt.enable_solve_cache, jt.enable_compilation_cache])
+@pytest.mark.parametrize("kind", ["a file", "a path through a file", "empty", "a NUL byte"])
+def test_a_folder_argument_that_is_no_folder_is_named_and_changes_nothing(enable, kind, tmp_path):
+    """A file, a path through one, "" or a NUL byte returned None (a file, "") as if the system
+    had refused the folder, or raised os' error naming no argument (NUL)."""
+    (tmp_path / "file").write_text("x")
+    folder = {"a file": tmp_path / "file", "a path through a file": tmp_path / "file" / "sub"}.get(
+        kind, {"empty": "", "a NUL byte": "a\0b"}.get(kind)
+    )
+    before = jax.config.jax_compilation_cache_dir
+    with pytest.raises(ValueError, match=r"^`folder` must be"):
+        enable(folder)
+    assert jax.config.jax_compilation_cache_dir == before
+    assert (tmp_path / "file").read_text() == "x"
+
+
+def test_a_new_nested_folder_is_created(tmp_path):
+    try:
+        folder = tmp_path / "a" / "b" / "c"
+        assert jt.enable_solve_cache(folder) == str(folder) and folder.is_dir()
+    finally:
+        jt.disable_solve_cache()
