@@ -5,11 +5,20 @@ import os
 import jax
 
 
+def _jaxtraj_cache_home() -> str:
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxtraj")
+
+
 def default_cache_folder() -> str:
     """`$JAXTRAJ_CACHE_DIR`, else `$XDG_CACHE_HOME/jaxtraj/xla` (`~/.cache/jaxtraj/xla`)."""
-    return os.environ.get("JAXTRAJ_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxtraj", "xla"
-    )
+    return os.environ.get("JAXTRAJ_CACHE_DIR") or os.path.join(_jaxtraj_cache_home(), "xla")
+
+
+def default_export_folder() -> str:
+    """`$JAXTRAJ_CACHE_DIR/export`, else `$XDG_CACHE_HOME/jaxtraj/export` (the solve cache's;
+    the parent of `default_cache_folder()` put it beside `$JAXTRAJ_CACHE_DIR`, outside it)."""
+    env = os.environ.get("JAXTRAJ_CACHE_DIR")
+    return os.path.join(env, "export") if env else os.path.join(_jaxtraj_cache_home(), "export")
 
 
 def make_folder(folder) -> str | None:

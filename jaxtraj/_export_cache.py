@@ -39,7 +39,7 @@ import jax
 import jax.core
 import numpy as np
 
-from ._cache import default_cache_folder, enable_compilation_cache, make_folder
+from ._cache import default_export_folder, enable_compilation_cache, make_folder
 from ._fingerprint import problem_fingerprint, static_fingerprint
 from ._solution import History, Solution
 from ._status import Status
@@ -84,7 +84,7 @@ def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
     """
     global _folder
     if folder is None:
-        folder = os.path.join(os.path.dirname(default_cache_folder()), "export")
+        folder = default_export_folder()
     if importlib.util.find_spec("flatbuffers") is None:  # (jax.export's serializer needs it)
         make_folder(folder)  # (a bad `folder` is still named)
         return None

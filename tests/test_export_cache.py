@@ -233,3 +233,13 @@ def test_a_new_nested_folder_is_created(tmp_path):
         assert jt.enable_solve_cache(folder) == str(folder) and folder.is_dir()
     finally:
         jt.disable_solve_cache()
+
+
+def test_the_default_folder_is_inside_jaxtraj_cache_dir(tmp_path, monkeypatch):
+    """The documented `$JAXTRAJ_CACHE_DIR/export`, not a sibling of the user's folder."""
+    monkeypatch.setenv("JAXTRAJ_CACHE_DIR", str(tmp_path / "cache"))
+    try:
+        assert jt.enable_solve_cache() == str(tmp_path / "cache" / "export")
+        assert not (tmp_path / "export").exists()
+    finally:
+        jt.disable_solve_cache()
