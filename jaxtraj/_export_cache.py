@@ -120,10 +120,22 @@ def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     # the problem's and control's arrays are the program's inputs, not part of it: their
     # values (zeros here) stay out of the key, so that new `args` or `x0` hit the entry
     problem, control = eqx.combine(jax.tree.map(lambda x: np.zeros(np.shape(x), x.dtype), dynamic), static)
-    h.update(problem_fingerprint(problem, control, simulator).encode())
+    h.update(problem_fingerprint(_built_bounds(problem), control, simulator).encode())
     # (the arrays by dtype and shape: their values are the program's inputs)
     h.update(static_fingerprint((static, dynamic, a0, solver, simulator)).encode())
     return h.hexdigest()
+
+
+def _built_bounds(problem):
+    """`problem` with its control-bound arrays at the values it was built with (its static
+    copy, in the key already): zeros there are refused as changed bounds (`_checks.
+    BOUNDS_CHANGED`), and a bounded problem never used the cache."""
+    for name, box in zip(("control_lower", "control_upper"), problem._control_box):
+        value = getattr(problem, name)
+        if value is not None:
+            built = np.asarray(box, np.dtype(value.dtype)).reshape(np.shape(value))
+            problem = eqx.tree_at(lambda p, name=name: getattr(p, name), problem, built)
+    return problem
 
 
 @functools.cache

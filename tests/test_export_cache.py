@@ -243,3 +243,32 @@ def test_the_default_folder_is_inside_jaxtraj_cache_dir(tmp_path, monkeypatch):
         assert not (tmp_path / "export").exists()
     finally:
         jt.disable_solve_cache()
+
+
+def _bounded_problem(lower, upper):
+    """x' = u, x(1) = 1, min 0.5 int (u - 3t)^2: the unbounded optimum u = 3t - 0.5 leaves
+    [lower, upper] at both ends."""
+    return jt.Problem(
+        lambda t, x, u, args: u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * jnp.sum((u - 3.0 * t) ** 2), final_time=1.0,
+        control_lower=np.array([lower]), control_upper=np.array([upper]),
+    )  # fmt: skip
+
+
+@pytest.mark.slow  # (four solves of a bounded problem, two exported: ~30 s)
+def test_a_problem_with_control_bounds_is_cached_and_other_bounds_are_another_entry(tmp_path):
+    """The key's stand-in arrays (zeros) were refused as changed control bounds: a bounded
+    problem silently never used the cache. Now it does, with the plain solve's answer, and
+    other bound values (static structure of the program) get their own entry."""
+    bounds = ((-0.3, 1.5), (-0.2, 1.6))
+    solve = lambda p: jt.solve(p, p.parametrize(jt.controls.PiecewiseLinear(6)), np.zeros(7), simulator=jt.RK4(5))
+    plain = [float(solve(_bounded_problem(*b)).objective) for b in bounds]
+    assert plain[0] != plain[1]
+    try:
+        jt.enable_solve_cache(tmp_path)
+        for b, expected in zip(bounds, plain):
+            sol = solve(_bounded_problem(*b))
+            assert jt.status_name(sol.status) == "SUCCESS" and float(sol.objective) == expected
+        assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 2
+    finally:
+        jt.disable_solve_cache()
