@@ -190,19 +190,26 @@ def _path(key) -> str:
 
 
 def _write(key, layout, exported) -> None:
-    blob = bytes(exported.serialize())
-    digest = hashlib.sha256(blob).hexdigest()  # (a changed byte of the program: its constants too)
-    header = json.dumps(
-        {"format": FORMAT, "key": key, "layout": layout, "structure": _structure(layout), "sha256": digest}
-    )
-    data = _MAGIC + header.encode() + b"\n" + blob
+    tmp = None
     try:
+        blob = bytes(exported.serialize())
+        digest = hashlib.sha256(blob).hexdigest()  # (a changed byte of the program: its constants too)
+        header = json.dumps(
+            {"format": FORMAT, "key": key, "layout": layout, "structure": _structure(layout), "sha256": digest}
+        )
         fd, tmp = tempfile.mkstemp(dir=_folder, prefix=".tmp-")
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            f.write(_MAGIC + header.encode() + b"\n" + blob)
         os.replace(tmp, _path(key))
-    except OSError:
-        pass  # (a read-only or full disk: the solve goes on without the entry)
+        tmp = None
+    except Exception:
+        pass  # (a read-only or full disk, a program JAX cannot serialize: the solve goes on without the entry)
+    finally:
+        if tmp is not None:  # (a half-written file was left in the folder for good)
+            try:
+                os.remove(tmp)
+            except OSError:
+                pass
 
 
 def _read(key, args):

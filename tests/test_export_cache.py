@@ -272,3 +272,24 @@ def test_a_problem_with_control_bounds_is_cached_and_other_bounds_are_another_en
         assert len(list(tmp_path.glob("solve-*.jaxexport"))) == 2
     finally:
         jt.disable_solve_cache()
+
+
+def test_a_failed_write_leaves_no_temporary_file_and_the_solve_goes_on(tmp_path, monkeypatch):
+    """A full disk (here: the final rename refused) left a `.tmp-*` file behind per solve."""
+
+    def refuse(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    problem = jt.Problem(
+        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+    try:
+        jt.enable_solve_cache(tmp_path)
+        monkeypatch.setattr(os, "replace", refuse)
+        sol = jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
+        assert float(sol.objective) == pytest.approx(0.125, rel=1e-9)
+        assert list(tmp_path.iterdir()) == []
+    finally:
+        jt.disable_solve_cache()
