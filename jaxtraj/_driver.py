@@ -205,3 +205,12 @@ def check_max_steps(max_steps):
     if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
         raise ValueError(f"`max_steps` must be an int >= 1; got {max_steps!r}.")
     return max_steps
+
+
+def check_step_counter(max_steps):
+    """A ValueError naming `max_steps` where it passes the int32 step counter (`SolverState.
+    num_steps`): 2**31 wrapped to a negative limit, and a batch without history (whose memory
+    check is not made) ended every start MAX_ITERATIONS after 0 steps. After the memory check,
+    whose message says more where the history is kept."""
+    if max_steps >= 2**31:
+        raise ValueError(f"`max_steps` must be < 2**31 (the solvers count steps in int32); got {max_steps:,}.")

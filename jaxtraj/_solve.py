@@ -17,7 +17,7 @@ from ._checks import (
     memory_refusal,
     traced_bounds,
 )
-from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, run
+from ._driver import HISTORY_BYTES, AbstractSolver, check_max_steps, check_step_counter, run
 from ._implicit import differentiable_solve
 from ._kalman_sqp import KalmanSQP
 from ._kkt import ACTIVE_TOL
@@ -91,6 +91,7 @@ def solve(
     check_simulator(simulator)
     solver.check(problem, control)
     check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")
+    check_step_counter(max_steps)
     check_solver_memory(control)
     # (True printed every step; 2**40 wrapped in int32 and printed every step too)
     if not is_count(progress, 0):

@@ -431,6 +431,16 @@ def test_numpy_integers_count_as_ints():
             jt.solve(prob, ctrl, a0, progress=bad)
 
 
+def test_a_max_steps_past_the_int32_step_counter_is_refused():
+    """A batch without history (no memory check) wrapped 2**31 to a negative limit: every
+    start ended MAX_ITERATIONS after 0 steps, silently."""
+    ctrl = C.PiecewiseLinear(3)
+    a0 = ctrl.initial_guess(3.4, 0.0, 0.0)
+    for max_steps in (2**31, 2**40):
+        with pytest.raises(ValueError, match=r"^`max_steps` must be < 2\*\*31 \(the solvers count steps in int32\)"):
+            jt.solve_batch(PROB, ctrl, np.stack([a0, a0]), max_steps=max_steps, history=False, progress=False)
+
+
 def test_what_cannot_fit_in_memory_is_refused_before_the_work():
     """Issue 51: sizes whose arrays alone exceed any machine's memory are refused up front
     with the number and the limit (they used to end in XLA's RESOURCE_EXHAUSTED, or the

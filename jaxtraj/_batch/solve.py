@@ -15,7 +15,7 @@ from jax.sharding import Mesh
 from .. import io as _io
 from .._checks import check_memory, check_problem_and_control, check_solver_memory, memory_refusal
 from .._configure import unused_cores_hint
-from .._driver import HISTORY_BYTES, AbstractSolver
+from .._driver import HISTORY_BYTES, AbstractSolver, check_step_counter
 from .._fingerprint import fingerprint, problem_fingerprint
 from .._implicit import differentiable_batch
 from .._kkt import ACTIVE_TOL
@@ -134,6 +134,7 @@ def solve_batch(
     keep_history = history
     if history:  # the history of every start comes back: n (N, max_steps) arrays
         check_memory("max_steps", n * max_steps * HISTORY_BYTES, f"the history of {n:,} starts x {max_steps:,} steps")
+    check_step_counter(max_steps)
 
     if out is not None and not isinstance(out, str | os.PathLike):  # (os' TypeError named no argument)
         raise ValueError(f"`out` must be None or a folder path (str or os.PathLike); got {type(out).__name__}.")
