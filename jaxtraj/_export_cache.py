@@ -64,9 +64,10 @@ def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
     compiled code (the compilation cache, turned on here in its default folder unless JAX
     already has one).
 
-    Only a `jt.solve` outside the user's `jax.jit` / `jax.vmap` / derivatives and with
-    `progress=0` uses it (derivatives take the ordinary path: the cached program is the
-    primal solve). The key is the problem's fingerprint (what it computes: each call pays
+    Only a `jt.solve` outside the user's `jax.jit` / `jax.vmap` / derivatives, with
+    `progress=0` and with jaxtraj's own solver, simulator and control classes uses it
+    (derivatives take the ordinary path: the cached program is the primal solve; a class of
+    the user's would be known by its name only, not its code). The key is the problem's fingerprint (what it computes: each call pays
     it, ~0.05 s, once per process per problem), so a changed constant in a dynamics function
     traces again; a host callback's Python body is not seen by it (see
     `_fingerprint.problem_fingerprint`). Call it before the first solve.
@@ -105,12 +106,32 @@ def disable_solve_cache() -> None:
     _memory.clear()
 
 
-def usable(problem, control, a0, progress) -> bool:
-    """Whether this solve may take the cached path: the cache is on, `progress` is 0 and no
-    input is a tracer."""
+def usable(problem, control, a0, progress, solver, simulator) -> bool:
+    """Whether this solve may take the cached path: the cache is on, `progress` is 0, no
+    input is a tracer, and the problem, control, solver and simulator are jaxtraj's own
+    classes (`_ours`)."""
     if _folder is None or progress:
         return False
+    if not _ours((problem, control, solver, simulator)):
+        return False
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((problem, control, a0)))
+
+
+def _ours(x) -> bool:
+    """Whether every equinox module in `x` (and in those it holds) is a class of jaxtraj's:
+    the key sees another class by its name and fields only (`static_fingerprint`), not by
+    what its methods compute, so a user's own solver, simulator or control (or a subclass),
+    edited between runs or two of one name, shared an entry and answered with the other's
+    program. Those solve as without the cache."""
+    if isinstance(x, eqx.Module):
+        if type(x).__module__.partition(".")[0] != "jaxtraj":
+            return False
+        return all(_ours(getattr(x, f.name, None)) for f in dataclasses.fields(x))
+    if isinstance(x, tuple | list):
+        return all(_ours(v) for v in x)
+    if isinstance(x, dict):
+        return all(_ours(v) for v in x.values())
+    return True
 
 
 def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:

@@ -98,7 +98,9 @@ def solve(
         raise ValueError(f"`progress` must be an int >= 0 and < 2**31; got {progress!r}.")
     progress = int(progress)  # (a NumPy integer, an array leaf, was traced)
 
-    if _export_cache.usable(problem, control, a0, progress):  # (`jt.enable_solve_cache`: primal only)
+    if _export_cache.usable(
+        problem, control, a0, progress, solver, simulator
+    ):  # (`jt.enable_solve_cache`: primal only)
         with memory_refusal("jt.solve", "use fewer RK4 steps or segments, or a smaller max_steps"):
             sol = _export_cache.cached_solve(run, solver, problem, control, a0, simulator, max_steps)
         if sol is not None:

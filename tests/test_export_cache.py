@@ -1,6 +1,7 @@
 """`jt.enable_solve_cache` (issue 53): a script run again on an unchanged problem answers from
 the exported program on disk without tracing the solve; a changed problem traces again."""
 
+import dataclasses
 import glob
 import json
 import os
@@ -291,5 +292,34 @@ def test_a_failed_write_leaves_no_temporary_file_and_the_solve_goes_on(tmp_path,
         sol = jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
         assert float(sol.objective) == pytest.approx(0.125, rel=1e-9)
         assert list(tmp_path.iterdir()) == []
+    finally:
+        jt.disable_solve_cache()
+
+
+def _scaled_search(factor):
+    """A user's own solver (the same class name for every factor): the objective times `factor`."""
+
+    class Scaled(jt.KalmanSearch):
+        def postprocess(self, problem, control, simulator, state):
+            sol = super().postprocess(problem, control, simulator, state)
+            return dataclasses.replace(sol, objective=sol.objective * factor)
+
+    return Scaled()
+
+
+def test_a_users_own_solver_class_is_not_cached(tmp_path):
+    """The key saw a user's solver by its class name and fields: two of one name (or one edited
+    between runs) shared an entry, and the second answered with the first one's program."""
+    problem = jt.Problem(
+        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+    try:
+        jt.enable_solve_cache(tmp_path)
+        for factor in (1.0, 2.0):
+            sol = jt.solve(problem, control, np.zeros(control.num_params), _scaled_search(factor), simulator=jt.RK4(5))
+            assert float(sol.objective) == pytest.approx(0.125 * factor, rel=1e-6)
+        assert list(tmp_path.glob("solve-*.jaxexport")) == []
     finally:
         jt.disable_solve_cache()
