@@ -117,14 +117,20 @@ def usable(problem, control, a0, progress, solver, simulator) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((problem, control, a0)))
 
 
+#: Whose classes may be in a cached solve: jaxtraj's, and the libraries' of `jt.Diffrax` (their
+#: versions are in the key).
+_LIBRARIES = ("jaxtraj", "diffrax", "equinox", "lineax", "optimistix")
+
+
 def _ours(x) -> bool:
-    """Whether every equinox module in `x` (and in those it holds) is a class of jaxtraj's:
+    """Whether every equinox module in `x` (and in those it holds) is a class of jaxtraj's (or
+    of a library of `_LIBRARIES`):
     the key sees another class by its name and fields only (`static_fingerprint`), not by
     what its methods compute, so a user's own solver, simulator or control (or a subclass),
     edited between runs or two of one name, shared an entry and answered with the other's
     program. Those solve as without the cache."""
     if isinstance(x, eqx.Module):
-        if type(x).__module__.partition(".")[0] != "jaxtraj":
+        if type(x).__module__.partition(".")[0] not in _LIBRARIES:
             return False
         return all(_ours(getattr(x, f.name, None)) for f in dataclasses.fields(x))
     if isinstance(x, tuple | list):
@@ -136,7 +142,7 @@ def _ours(x) -> bool:
 
 def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     h = hashlib.sha256(FORMAT.encode())
-    for part in (jax.__version__, _jaxlib_version(), _version(), jax.default_backend(), str(max_steps)):
+    for part in (jax.__version__, _library_versions(), _version(), jax.default_backend(), str(max_steps)):
         h.update(part.encode() + b"\0")
     # the problem's and control's arrays are the program's inputs, not part of it: their
     # values (zeros here) stay out of the key, so that new `args` or `x0` hit the entry
@@ -160,10 +166,16 @@ def _built_bounds(problem):
 
 
 @functools.cache
-def _jaxlib_version() -> str:
-    from importlib.metadata import version
+def _library_versions() -> str:
+    from importlib.metadata import PackageNotFoundError, version
 
-    return version("jaxlib")
+    parts = []
+    for name in ("jaxlib", *_LIBRARIES[1:]):  # (a library's classes are seen by name: its version too)
+        try:
+            parts.append(f"{name} {version(name)}")
+        except PackageNotFoundError:
+            parts.append(f"{name} -")
+    return "; ".join(parts)
 
 
 @functools.cache
