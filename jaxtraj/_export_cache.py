@@ -109,10 +109,12 @@ def disable_solve_cache() -> None:
 def usable(problem, control, a0, progress, solver, simulator) -> bool:
     """Whether this solve may take the cached path: the cache is on, `progress` is 0, no
     input is a tracer, and the problem, control, solver and simulator are jaxtraj's own
-    classes (`_ours`)."""
+    classes (`_ours`; the problem's functions may be anything)."""
     if _folder is None or progress:
         return False
-    if not _ours((problem, control, solver, simulator)):
+    # (the problem's functions, an equinox module of the user's among them, are keyed by what
+    # they compute: `problem_fingerprint`)
+    if not (_ours((control, solver, simulator)) and _library_class(problem)):
         return False
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((problem, control, a0)))
 
@@ -122,15 +124,18 @@ def usable(problem, control, a0, progress, solver, simulator) -> bool:
 _LIBRARIES = ("jaxtraj", "diffrax", "equinox", "lineax", "optimistix")
 
 
+def _library_class(x) -> bool:
+    return type(x).__module__.partition(".")[0] in _LIBRARIES
+
+
 def _ours(x) -> bool:
     """Whether every equinox module in `x` (and in those it holds) is a class of jaxtraj's (or
-    of a library of `_LIBRARIES`):
-    the key sees another class by its name and fields only (`static_fingerprint`), not by
-    what its methods compute, so a user's own solver, simulator or control (or a subclass),
+    of a library of `_LIBRARIES`): the key sees another class by its name and fields only
+    (`static_fingerprint`), not by what its methods compute, so a user's own solver, simulator or control (or a subclass),
     edited between runs or two of one name, shared an entry and answered with the other's
     program. Those solve as without the cache."""
     if isinstance(x, eqx.Module):
-        if type(x).__module__.partition(".")[0] not in _LIBRARIES:
+        if not _library_class(x):
             return False
         return all(_ours(getattr(x, f.name, None)) for f in dataclasses.fields(x))
     if isinstance(x, tuple | list):
