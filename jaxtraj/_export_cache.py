@@ -40,7 +40,7 @@ import jax.core
 import numpy as np
 
 from ._cache import default_export_folder, enable_compilation_cache, make_folder
-from ._fingerprint import problem_fingerprint, static_fingerprint
+from ._fingerprint import fingerprint, problem_fingerprint, static_fingerprint
 from ._solution import History, Solution
 from ._status import Status
 
@@ -154,7 +154,10 @@ def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     problem, control = eqx.combine(jax.tree.map(lambda x: np.zeros(np.shape(x), x.dtype), dynamic), static)
     h.update(problem_fingerprint(_built_bounds(problem), control, simulator).encode())
     # (the arrays by dtype and shape: their values are the program's inputs)
-    h.update(static_fingerprint((static, dynamic, a0, solver, simulator)).encode())
+    h.update(static_fingerprint((static, dynamic, a0)).encode())
+    # the solver's and simulator's arrays (e.g. `ctol=jnp.asarray(1e-12)`) are constants of the
+    # program, not inputs: their values too, or another tolerance answered with this program
+    h.update(fingerprint((solver, simulator)).encode())
     return h.hexdigest()
 
 

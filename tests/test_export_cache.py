@@ -323,3 +323,28 @@ def test_a_users_own_solver_class_is_not_cached(tmp_path):
         assert list(tmp_path.glob("solve-*.jaxexport")) == []
     finally:
         jt.disable_solve_cache()
+
+
+@pytest.mark.slow  # (three augmented-Lagrangian solves, two exported: ~10 s)
+def test_solvers_differing_only_in_an_array_tolerance_do_not_share_an_entry(tmp_path):
+    """The key had the solver's arrays by dtype and shape only, but they are constants of the
+    program: `ctol=jnp.asarray(1e-12)` answered with the program of `ctol=jnp.asarray(0.1)`
+    (its steps, its constraint error 1e-6)."""
+    problem = jt.Problem(
+        lambda t, x, u, args: u + 0.5 * jnp.sin(3 * x), np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",),
+        num_controls=1, running_cost=lambda t, x, u, args: 0.5 * (u @ u) + jnp.cos(u[0]), final_time=1.0,
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+    solve = lambda ctol: jt.solve(
+        problem, control, np.zeros(control.num_params), jt.AugmentedLagrangian(ctol=jnp.asarray(ctol)),
+        simulator=jt.RK4(5),
+    )  # fmt: skip
+    plain = solve(1e-12)
+    assert float(plain.max_constraint_error) < 1e-11
+    try:
+        jt.enable_solve_cache(tmp_path)
+        assert float(solve(0.1).max_constraint_error) > 1e-8
+        cached = solve(1e-12)
+        assert int(cached.steps) == int(plain.steps) and float(cached.max_constraint_error) < 1e-11
+    finally:
+        jt.disable_solve_cache()
