@@ -21,22 +21,27 @@ def default_export_folder() -> str:
     return os.path.join(env, "export") if env else os.path.join(_jaxtraj_cache_home(), "export")
 
 
-def make_folder(folder) -> str | None:
+def make_folder(folder, what: str = "`folder`") -> str | None:
     """`folder` (a str or os.PathLike) as a str, created if missing; None where the system
-    refuses it (permissions, a full disk). A `ValueError` naming `folder` for what is no
-    folder at all: another type, an empty path, a NUL byte, a file or a path through one."""
+    refuses it (permissions, a full disk). A `ValueError` naming `what` (the argument, or the
+    default folder's variable) for what is no folder at all: another type, an empty path, a
+    NUL byte, a file or a path through one."""
     if not isinstance(folder, str | os.PathLike):  # (os' TypeError named no argument)
-        raise ValueError(f"`folder` must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
+        raise ValueError(f"{what} must be None or a path (str or os.PathLike); got {type(folder).__name__}.")
     path = os.fspath(folder)
     if not isinstance(path, str) or not path or "\0" in path:  # (b"..." paths; "" was a silent None)
-        raise ValueError(f"`folder` must be a non-empty path without NUL bytes; got {folder!r}.")
+        raise ValueError(f"{what} must be a non-empty path without NUL bytes; got {folder!r}.")
     try:
         os.makedirs(path, exist_ok=True)
     except (FileExistsError, NotADirectoryError):  # (exist_ok: a file where the folder would be)
-        raise ValueError(f"`folder` must be a folder; {path!r} is a file or a path through one.") from None
+        raise ValueError(f"{what} must be a folder; {path!r} is a file or a path through one.") from None
     except OSError:
         return None
     return path
+
+
+#: How `make_folder` names a default folder that is no folder (set by the environment).
+DEFAULT_FOLDER = "The default folder (`$JAXTRAJ_CACHE_DIR`, else `$XDG_CACHE_HOME/jaxtraj`)"
 
 
 def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | None:
@@ -64,9 +69,10 @@ def enable_compilation_cache(folder: str | os.PathLike | None = None) -> str | N
     **Raises:** `ValueError` when `folder` is neither None nor a path, is empty, or names a
     file (or a path through one).
     """
+    what = "`folder`" if folder is not None else DEFAULT_FOLDER
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or default_cache_folder()  # pyright: ignore[reportAttributeAccessIssue]  (JAX config options are dynamic attributes)
-    folder = make_folder(folder)
+    folder = make_folder(folder, what)
     if folder is None:
         return None
     jax.config.update("jax_compilation_cache_dir", folder)

@@ -39,7 +39,7 @@ import jax
 import jax.core
 import numpy as np
 
-from ._cache import default_export_folder, enable_compilation_cache, make_folder
+from ._cache import DEFAULT_FOLDER, default_export_folder, enable_compilation_cache, make_folder
 from ._fingerprint import fingerprint, problem_fingerprint, static_fingerprint
 from ._solution import History, Solution
 from ._status import Status
@@ -84,16 +84,15 @@ def enable_solve_cache(folder: str | os.PathLike | None = None) -> str | None:
     file (or a path through one).
     """
     global _folder
-    if folder is None:
-        folder = default_export_folder()
-    if importlib.util.find_spec("flatbuffers") is None:  # (jax.export's serializer needs it)
-        make_folder(folder)  # (a bad `folder` is still named)
-        return None
-    folder = make_folder(folder)
-    if folder is None:
+    what = "`folder`" if folder is not None else DEFAULT_FOLDER
+    folder = make_folder(default_export_folder() if folder is None else folder, what)
+    if folder is None or importlib.util.find_spec("flatbuffers") is None:  # (jax.export's serializer needs it)
         return None
     if not jax.config.jax_compilation_cache_dir:  # pyright: ignore[reportAttributeAccessIssue]
-        enable_compilation_cache()
+        try:
+            enable_compilation_cache()
+        except ValueError:  # (`$JAXTRAJ_CACHE_DIR` no folder: the programs are kept, not their compiles)
+            pass
     _folder = folder
     _memory.clear()
     return folder

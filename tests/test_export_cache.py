@@ -348,3 +348,12 @@ def test_solvers_differing_only_in_an_array_tolerance_do_not_share_an_entry(tmp_
         assert int(cached.steps) == int(plain.steps) and float(cached.max_constraint_error) < 1e-11
     finally:
         jt.disable_solve_cache()
+
+
+def test_a_default_folder_that_is_a_file_names_the_variable(tmp_path, monkeypatch):
+    """No argument was given: the error names `$JAXTRAJ_CACHE_DIR`, not `folder`."""
+    (tmp_path / "file").write_text("x")
+    monkeypatch.setenv("JAXTRAJ_CACHE_DIR", str(tmp_path / "file"))
+    with pytest.raises(ValueError, match=r"^The default folder \(`\$JAXTRAJ_CACHE_DIR`.* is a file"):
+        jt.enable_solve_cache()
+    assert (tmp_path / "file").read_text() == "x"
