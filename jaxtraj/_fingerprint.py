@@ -51,17 +51,20 @@ def static_fingerprint(tree) -> str:
     return h.hexdigest()
 
 
-def _nested_consts(jaxpr):
+def _nested_consts(jaxpr, seen=None):
     """The constants of the closed jaxprs nested in `jaxpr`'s equations (a `jax.jit` helper's,
-    a `cond` branch's): its printed form shows their types, not their values."""
+    a `cond` branch's): its printed form shows their types, not their values. Each nested
+    jaxpr once (a helper called in many places is one object: its calls are in the printed
+    form)."""
+    seen = set() if seen is None else seen
     for eqn in jaxpr.eqns:
         for param in eqn.params.values():
             for sub in param if isinstance(param, tuple | list) else (param,):
-                if isinstance(sub, ClosedJaxpr):
-                    yield from sub.consts
-                    yield from _nested_consts(sub.jaxpr)
-                elif isinstance(sub, Jaxpr):
-                    yield from _nested_consts(sub)
+                if isinstance(sub, ClosedJaxpr | Jaxpr) and id(sub) not in seen:
+                    seen.add(id(sub))
+                    if isinstance(sub, ClosedJaxpr):
+                        yield from sub.consts
+                    yield from _nested_consts(sub.jaxpr if isinstance(sub, ClosedJaxpr) else sub, seen)
 
 
 def problem_fingerprint(problem, control, simulator) -> str:
