@@ -691,7 +691,8 @@ def _int_at_least(low):
     return parse
 
 
-def main(argv=None):
+def parse_args(argv=None):
+    """The command line's arguments (argparse's one-line error, exit status 2, for a bad one)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=_int_at_least(1), default=100, help="random problems per class")
     # (NumPy's generators take seeds >= 0 only)
@@ -700,6 +701,13 @@ def main(argv=None):
     parser.add_argument("--solvers", nargs="+", default=["default"], choices=sorted(SOLVERS))
     parser.add_argument("--verbose", action="store_true", help="a line per solve")
     args = parser.parse_args(argv)
+    # (a class or solver named twice ran twice into one row: its problem count doubled)
+    args.classes, args.solvers = list(dict.fromkeys(args.classes)), list(dict.fromkeys(args.solvers))
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     print(f"# fuzz: {args.n} random problems per class from seed {args.seed}; {platform.machine()}, ")
     print(f"# jax {jax.__version__}; {time.strftime('%Y-%m-%d')}; RK4({STEPS}); oracles: Clarabel (cvxpy), HiGHS LPs\n")
     counts = {}

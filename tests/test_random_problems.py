@@ -178,3 +178,12 @@ def test_fuzz_command_line_refuses_a_bad_argument_in_one_line_naming_it(argv, na
     assert exit_.value.code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert f": error: argument {named}:" in last
+
+
+def test_fuzz_command_line_runs_a_class_or_solver_named_twice_once():
+    """`--solvers default default` solved each start twice into one table row (twice the
+    problems the run had)."""
+    fuzz = load_benchmark("fuzz")
+    args = fuzz.parse_args(["--classes", "lq", "lq", "--solvers", "default", "line-search", "default"])
+    assert args.classes == ["lq"] and args.solvers == ["default", "line-search"]
+    assert fuzz.parse_args([]).solvers == ["default"] and fuzz.parse_args([]).n == 100
