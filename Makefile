@@ -16,9 +16,12 @@ run: $(STAMP)
 	$(VENV)/bin/jaxtraj solve earth-mars --case 4 --out results/earth-mars-case4
 
 # test files spread over the cores (pytest-xdist; a file stays in one process, where its tests
-# share compiled solvers), at most 4 processes (each can hold a few GB of compiled programs)
+# share compiled solvers), at most 4 processes (each can hold a few GB of compiled programs).
+# Compiled at XLA's backend (LLVM) optimization level 0: compiling is most of this tier's time
+# and takes half as long there (benchmarks/RESULTS.md, "make test"); it is also another
+# arithmetic than the default level 3, which `test-slow` and `test-isa` keep.
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
+	XLA_FLAGS="--xla_backend_optimization_level=0 $$XLA_FLAGS" $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=30
 
 # the studies marked `slow` (re-solves against finite differences, adaptive simulations), which
 # `make test` leaves out; CI runs them too

@@ -133,8 +133,14 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
             r"status SUCCESS with `max_violation` = 0\.5 contradicts .*constraint tolerance 1e-10 in its history",
         ),
         # the summary's objective, projected gradient and iteration count against the arrays
-        (lambda d: _edit(d, lambda s: s.update(objective=s["objective"] + 1)), r"`objective` = 7\.0 contradicts .*npz"),
-        (lambda d: _edit(d, lambda s: s.update(objective=None)), r"`objective` = nan contradicts .*\(6\.0 there"),
+        (
+            lambda d: _edit(d, lambda s: s.update(objective=s["objective"] + 1)),
+            r"`objective` = (7\.0|6\.9{10,}\d*) contradicts .*npz",
+        ),
+        (
+            lambda d: _edit(d, lambda s: s.update(objective=None)),
+            r"`objective` = nan contradicts .*\((6\.0|5\.9{10,}\d*) there",
+        ),
         (
             lambda d: _edit(d, lambda s: s.update(projected_gradient=1.0)),
             r"`projected_gradient` = 1\.0 contradicts",

@@ -176,10 +176,10 @@ def test_vmap_over_keys_equals_single_runs(name):
     assert bool(jnp.all(batch.status == jt.Status.SUCCESS))
     for i, seed in enumerate(SEEDS):
         single = minimize(OPTIMIZERS[name], fn, lower, upper, jax.random.key(seed), max_iterations=K)
-        # Bit for bit.
-        assert np.array_equal(np.asarray(batch.x[i]), np.asarray(single.x))
-        assert np.array_equal(np.asarray(batch.f[i]), np.asarray(single.f))
-        assert np.array_equal(np.asarray(batch.history_best[i]), np.asarray(single.history_best))
+        # To round-off (bit for bit at XLA's default optimization level; at level 0, which
+        # `make test` compiles at, the vmapped arithmetic differs in the last bits)
+        for got, want in ((batch.x[i], single.x), (batch.f[i], single.f), (batch.history_best[i], single.history_best)):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=1e-12)
         assert int(batch.evaluations[i]) == int(single.evaluations) and int(batch.iterations[i]) == K
     # Same key, same result (bit for bit); different keys, different runs.
     again = minimize(OPTIMIZERS[name], fn, lower, upper, keys[2], max_iterations=K)
