@@ -184,6 +184,8 @@ def run_concretely(fn, control, *args) -> np.ndarray:
     spline's limits) runs with zeros in their place where `fn` provably does not use them
     (`_concrete_stand_in`), otherwise op by op, which fails where `fn` uses them (a
     `jax.errors.JAXTypeError`)."""
+    if jax.config.jax_disable_jit:  # pyright: ignore[reportAttributeAccessIssue]  (op by op: no program to compile)
+        return np.asarray(fn(control, *(jnp.asarray(x) for x in args)))
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(control)):
         stand_in = _concrete_stand_in(fn, control, args)
         if stand_in is None:
