@@ -2,6 +2,7 @@
 types, the parameter vector. Errors name the argument."""
 
 import contextlib
+import functools
 import os
 import re
 
@@ -92,6 +93,48 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
             f"({', '.join(wants) or 'no fixed final time, no free initial state'}): pass "
             "`problem.parametrize(family)` for a control family (jt.controls.*)."
         )
+
+
+def closed_over_tracer(problem: Problem) -> str | None:
+    """The path of a function of `problem` that closes over a JAX tracer (`problem.dynamics...`),
+    or None. Under `jax.jit` or `jax.vmap` such a closure works (the value is a constant of
+    the user's trace); under a derivative the tracer escapes jaxtraj's compiled solve (JAX's
+    UnexpectedTracerError, which names neither the function nor the remedy): `jt.solve`
+    then names it."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(problem):  # (the user's functions are leaves)
+        if _closes_over_tracer(leaf):
+            return f"problem{jax.tree_util.keystr(path)}"
+    return None
+
+
+#: What to do about `closed_over_tracer`.
+CLOSED_OVER_TRACER = (
+    "closes over a value that JAX differentiates (a variable of the function under jax.grad or "
+    "jax.jvp), which jaxtraj's compiled solve cannot carry. Pass it in the problem's `args` and "
+    "read it there: jt.solve differentiates `args` by the implicit function theorem."
+)
+
+
+def _closes_over_tracer(fn, depth: int = 0) -> bool:
+    """Whether the function `fn` (a closure, a `functools.partial`, nested up to 4 deep) holds
+    a JAX tracer among the values it closes over. (Such a function in a problem leaked the
+    tracer out of jaxtraj's compiled programs: JAX's UnexpectedTracerError, which named
+    neither the function nor the remedy.)"""
+    if depth > 4 or not callable(fn):
+        return False
+    if isinstance(fn, functools.partial):
+        held = [fn.func, *fn.args, *fn.keywords.values()]
+    else:
+        held = []
+        for cell in getattr(fn, "__closure__", None) or ():
+            with contextlib.suppress(ValueError):  # (an empty cell)
+                held.append(cell.cell_contents)
+    for value in held:
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
+            return True
+        if callable(value) and _closes_over_tracer(value, depth + 1):
+            return True
+    return False
 
 
 #: Why a problem's control-bound arrays must keep the values it was built with.

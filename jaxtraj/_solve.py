@@ -8,11 +8,13 @@ import jax.numpy as jnp
 from . import _export_cache
 from ._checks import (
     BOUNDS_CHANGED,
+    CLOSED_OVER_TRACER,
     bounds_changed,
     check_inputs,
     check_memory,
     check_problem_and_control,
     check_solver_memory,
+    closed_over_tracer,
     is_count,
     memory_refusal,
     traced_bounds,
@@ -116,4 +118,10 @@ def solve(
     # the activity tolerance of the solver's own KKT test, where it has one
     active_tol = getattr(solver, "path_active", ACTIVE_TOL)
     with memory_refusal("jt.solve", "use fewer RK4 steps or segments, or a smaller max_steps"):
-        return differentiable_solve(solve_from, problem, control, a0, simulator, active_tol)
+        try:
+            return differentiable_solve(solve_from, problem, control, a0, simulator, active_tol)
+        except jax.errors.UnexpectedTracerError as e:
+            where = closed_over_tracer(problem)
+            if where is None:
+                raise
+            raise ValueError(f"`{where}` {CLOSED_OVER_TRACER}") from e

@@ -552,3 +552,25 @@ def test_solve_runs_op_by_op_under_disable_jit():
         sol = jt.solve(problem, control, a, simulator=jt.RK4(5))
     assert jt.status_name(sol.status) == "SUCCESS"
     assert float(sol.objective) == pytest.approx(0.125, rel=1e-10)
+
+
+def test_a_gain_closed_over_under_grad_is_named_and_the_same_gain_in_args_differentiates():
+    """x' = k u to x(1) = 1 at least energy: J = 1 / (2 k^2), dJ/dk = -1 / k^3. A `k` closed
+    over by the dynamics under `jax.grad` escaped the compiled solve (JAX's
+    UnexpectedTracerError, naming neither the function nor the remedy); in `args` it is
+    differentiated."""
+
+    def objective(k, in_args):
+        problem = jt.Problem(
+            (lambda t, x, u, args: args[0] * u) if in_args else (lambda t, x, u, args: k * u),
+            np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+            running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+            args=jnp.stack([k]) if in_args else None,
+        )  # fmt: skip
+        control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+        return jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5)).objective
+
+    with pytest.raises(ValueError, match=r"`problem\.dynamics.*` closes over a value that JAX differentiates.*`args`"):
+        jax.grad(lambda k: objective(k, False))(2.0)
+    assert float(jax.grad(lambda k: objective(k, True))(2.0)) == pytest.approx(-0.125, rel=1e-8)
+    assert float(jax.jit(lambda k: objective(k, False))(2.0)) == pytest.approx(0.125, rel=1e-10)  # (works: a constant)
