@@ -352,13 +352,22 @@ def differentiable_solve(run, problem, control, a0, simulator, active_tol):
 
     @solve.defjvp
     def solve_jvp(primals, tangents):
-        arrays, a0 = primals
+        arrays, dtheta = _floats_as_arrays(primals[0]), _floats_as_arrays(tangents[0])
+        a0 = primals[1]
         sol = solve(arrays, a0)  # itself: a second derivative meets this rule again
         p, c = eqx.combine(arrays, static)
-        computed = kkt_tangents(p, c, simulator, sol, active_tol, _theta_tangents(p, c, static, tangents[0]))
+        computed = kkt_tangents(p, c, simulator, sol, active_tol, _theta_tangents(p, c, static, dtheta))
         return sol, _solution_tangent(sol, computed)
 
     return solve(arrays, a0)
+
+
+def _floats_as_arrays(tree):
+    """`tree` with its Python floats as arrays. A weakly typed input of the user's `jax.jvp` /
+    `jax.grad` (`jax.grad(f)(2.0)`) reaches a `custom_jvp` rule as a Python float, primal and
+    tangent; as a float it is no inexact array of the problem, and `args=k` had the
+    derivative 0."""
+    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, tree)
 
 
 def _theta_tangents(problem, control, static, tangents):
@@ -399,7 +408,7 @@ def differentiable_batch(run, problem, control, simulator, active_tol):
 
     @solve.defjvp
     def solve_jvp(primals, tangents):
-        (arrays,), (darrays,) = primals, tangents
+        arrays, darrays = _floats_as_arrays(primals[0]), _floats_as_arrays(tangents[0])
         sols = solve(arrays)
         p, c = eqx.combine(arrays, static)
         dtheta = _theta_tangents(p, c, static, darrays)

@@ -692,3 +692,31 @@ def test_solve_batch_derivatives_are_the_per_start_ones():
     with pytest.raises(ValueError, match=r"outside jax\.jit"):
         jax.jit(batch)(LQ_THETA)
     assert np.all(np.isnan(grad[1])) and rel_err(grad[np.array([0, 2])], fwd[0]["target"][np.array([0, 2])]) < 1e-10
+
+
+def test_a_python_float_differentiated_as_args_has_its_derivative():
+    """x' = k u to x(1) = 1 at least energy: J = 1 / (2 k^2), dJ/dk = -1 / k^3 = -0.125 at
+    k = 2. `jax.grad(f)(2.0)` hands the solve's derivative rule a Python float for `args = k`
+    (a weakly typed input), which was no inexact array of the problem: the derivative was 0,
+    silently, from `jt.solve` and `jt.solve_batch`; a `jnp.float64(2.0)` gave -0.125."""
+
+    def build(k):
+        problem = jt.Problem(
+            lambda t, x, u, args: args * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",),
+            num_controls=1, running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0, args=k,
+        )  # fmt: skip
+        return problem, problem.parametrize(jt.controls.PiecewiseLinear(4))
+
+    def single(k):
+        problem, control = build(k)
+        return jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5)).objective
+
+    def batch(k):
+        problem, control = build(k)
+        starts = np.zeros((2, control.num_params))
+        sols = jt.solve_batch(problem, control, starts, simulator=jt.RK4(5), progress=False, history=False)
+        return jnp.sum(sols.objective)
+
+    assert float(jax.grad(single)(2.0)) == pytest.approx(-0.125, rel=1e-8)
+    assert float(jax.jvp(single, (2.0,), (1.0,))[1]) == pytest.approx(-0.125, rel=1e-8)
+    assert float(jax.grad(batch)(2.0)) == pytest.approx(-0.25, rel=1e-8)
