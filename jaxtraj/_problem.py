@@ -185,6 +185,18 @@ class Problem(eqx.Module):
         free_initial_state=(),
         name="problem",
     ):
+        for label, value in (("x0", x0), ("final_time", final_time)):
+            if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
+                # (it was refused as "must be real numbers" / "a finite number", which it may be)
+                route = {
+                    "x0": "problem.x0.at[:n].set(value))` (`problem.x0` holds a running cost's state too)",
+                    "final_time": "value)`, then `problem.parametrize(family)` again",
+                }[label]
+                raise ValueError(
+                    f"`{label}` is traced (a variable of jax.grad, jax.jit or jax.vmap): jt.Problem takes concrete "
+                    f"numbers there. Build the problem with concrete ones and put the traced value in with "
+                    f"`eqx.tree_at(lambda p: p.{label}, problem, {route}; see docs/differentiable.md."
+                )
         try:
             if np.iscomplexobj(x0):  # (a cast to float64 drops the imaginary part with a warning only)
                 raise TypeError

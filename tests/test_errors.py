@@ -574,3 +574,20 @@ def test_a_gain_closed_over_under_grad_is_named_and_the_same_gain_in_args_differ
         jax.grad(lambda k: objective(k, False))(2.0)
     assert float(jax.grad(lambda k: objective(k, True))(2.0)) == pytest.approx(-0.125, rel=1e-8)
     assert float(jax.jit(lambda k: objective(k, False))(2.0)) == pytest.approx(0.125, rel=1e-10)  # (works: a constant)
+
+
+@pytest.mark.parametrize("label", ["x0", "final_time"])
+def test_a_traced_x0_or_final_time_names_the_tree_at_route(label):
+    """Under `jax.grad`, `jt.Problem(x0=traced)` said "`x0` must be real numbers" and
+    `final_time=traced` "must be a finite number > 0": both are real numbers; the route that
+    differentiates them (docs/differentiable.md) is `eqx.tree_at` on a built problem."""
+
+    def build(k):
+        return jt.Problem(
+            lambda t, x, u, args: 2.0 * u, jnp.stack([k]) if label == "x0" else np.zeros(1),
+            lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+            running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=k if label == "final_time" else 1.0,
+        ).x0[0]  # fmt: skip
+
+    with pytest.raises(ValueError, match=rf"`{label}` is traced .*eqx\.tree_at\(lambda p: p\.{label}"):
+        jax.grad(build)(1.0)
