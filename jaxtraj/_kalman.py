@@ -295,9 +295,10 @@ def dual_active_set(
         # refactor every 4th the robot takes the same 13 iterations from its start and its
         # 1e-12 / 1e-10 perturbations under three ISA settings as with one at every
         # departure; every 8th, 10-21 (docs/history.md, session 43).
-        e_i = jnp.arange(n) == jnp.argmax(slot_row == k)
-        m_i = M @ e_i.astype(M.dtype)
-        m_ii = jnp.where(drop, m_i @ e_i.astype(M.dtype), 1.0)
+        i = jnp.argmax(slot_row == k)
+        e_i = jnp.arange(n) == i
+        m_i = M[:, i]
+        m_ii = jnp.where(drop, M[i, i], 1.0)
         y = G.T @ m_i
         G = jnp.where(drop & e_i[:, None], 0.0, G)
         slot_row = jnp.where(drop & e_i, -1, slot_row)
