@@ -153,3 +153,13 @@ def reach_problem():
         control_lower=-1.0,
         control_upper=1.0,
     )
+
+
+def gain_reach():
+    """`(problem, control)`: x' = 2 u from 0 to x(1) = 1 at least energy, u = 1/2, objective
+    0.125 (closed form), on 4 linear pieces."""
+    problem = jt.Problem(
+        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+    )  # fmt: skip
+    return problem, problem.parametrize(jt.controls.PiecewiseLinear(4))

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import gain_reach
 
 import jaxtraj as jt
 
@@ -518,21 +519,12 @@ def test_multistart_tol_must_be_a_finite_number():
             jt.multistart(prob, ctrl, jax.random.key(0), 2, around=ctrl.initial_guess(1.2, 0.0, 0.0), tol=tol)
 
 
-def _reach():
-    """x' = 2 u from 0 to x(1) = 1 at least energy (optimum 0.125), 4 linear pieces."""
-    problem = jt.Problem(
-        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
-        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
-    )  # fmt: skip
-    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
-    return problem, control, np.linspace(0.1, 0.5, control.num_params)
-
-
 def test_simulate_and_evaluate_run_op_by_op_under_disable_jit():
     """Under `jax.disable_jit()` (a user debugging with prints) the control's knots ran a
     program compiled ahead of time, which JAX refuses there ("Disable jit is not supported in
     the AOT path"): every call raised. Now op by op, with the jitted results."""
-    problem, control, a = _reach()
+    problem, control = gain_reach()
+    a = np.linspace(0.1, 0.5, control.num_params)
     sim = jt.RK4(5)
     traj, ev = jt.simulate(problem, control, a, simulator=sim), jt.evaluate(problem, control, a, simulator=sim)
     with jax.disable_jit():
@@ -547,7 +539,8 @@ def test_simulate_and_evaluate_run_op_by_op_under_disable_jit():
 
 @pytest.mark.slow  # (op by op: about a minute)
 def test_solve_runs_op_by_op_under_disable_jit():
-    problem, control, a = _reach()
+    problem, control = gain_reach()
+    a = np.linspace(0.1, 0.5, control.num_params)
     with jax.disable_jit():
         sol = jt.solve(problem, control, a, simulator=jt.RK4(5))
     assert jt.status_name(sol.status) == "SUCCESS"

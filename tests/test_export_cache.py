@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import gain_reach
 
 import jaxtraj as jt
 
@@ -187,21 +188,12 @@ def test_problems_differing_only_in_a_jitted_helpers_constant_do_not_share_an_en
         jt.disable_solve_cache()
 
 
-def _reach_problem():
-    """x' = 2 u from 0 to x(1) = 1 at least energy (optimum 0.125), on 4 linear pieces."""
-    problem = jt.Problem(
-        lambda t, x, u, args: 2.0 * u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(1) = 1",), num_controls=1,
-        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
-    )  # fmt: skip
-    return problem, problem.parametrize(jt.controls.PiecewiseLinear(4))
-
-
 def test_an_entry_whose_program_constant_was_changed_on_disk_is_ignored(tmp_path):
     """A changed byte of the stored program (here the dynamics' gain 2.0 -> 3.0) that still
     deserializes and runs is caught by the entry's checksum: the solve traces again."""
     import struct
 
-    problem, control = _reach_problem()
+    problem, control = gain_reach()
     solve = lambda: jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
     try:
         jt.enable_solve_cache(tmp_path)
@@ -286,7 +278,7 @@ def test_a_failed_write_leaves_no_temporary_file_and_the_solve_goes_on(tmp_path,
     def refuse(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    problem, control = _reach_problem()
+    problem, control = gain_reach()
     try:
         jt.enable_solve_cache(tmp_path)
         monkeypatch.setattr(os, "replace", refuse)
@@ -311,7 +303,7 @@ def _scaled_search(factor):
 def test_a_users_own_solver_class_is_not_cached(tmp_path):
     """The key saw a user's solver by its class name and fields: two of one name (or one edited
     between runs) shared an entry, and the second answered with the first one's program."""
-    problem, control = _reach_problem()
+    problem, control = gain_reach()
     try:
         jt.enable_solve_cache(tmp_path)
         for factor in (1.0, 2.0):
