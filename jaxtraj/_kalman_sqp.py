@@ -302,17 +302,16 @@ class KalmanSQP(AbstractSolver):
             # that no bounded control meets at the current tf; with no E to soften, the hard
             # QP's step went past its bounds, multipliers 1e97, STALLED; issue 49), a third
             # round also softens the path and terminal inequality rows violated now (C >
-            # `ctol`), observed at their boundary with one noise for all softened rows (a
-            # penalty on (C + C_a d)^2), while the bounds on the parameters, the step's box and
-            # the knot gaps stay hard; its Hessian is B + A^T R^-1 A over all softened rows.
+            # `ctol`) and those that held the elastic step (`held` below), observed at their
+            # boundary with one noise for all softened rows (a penalty on (C + C_a d)^2), while
+            # the bounds on the parameters, the step's box and the knot gaps stay hard; its
+            # Hessian is B + A^T R^-1 A over all softened rows.
             pinned = jnp.einsum("ip,pq,iq->i", C_a, P1, C_a) < ELASTIC_PINNED * prior_var
             pinned_violated = jnp.any((pinned & (C + C_a @ d > self.ctol))[:n_rows])
             r_soft = jnp.full_like(hph, self.elastic * jnp.mean(hph) + 1e-300)
             n_soft = n_rows - (0 if ev.V is None else ev.V.shape[0])  # path and terminal rows
             C_s, C_as = C[:n_soft], C_a[:n_soft]
-            softened = C_s > self.ctol
-            noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(softened, prior_var[:n_soft], 0.0)))
-            noise = noise / jnp.maximum(m + jnp.sum(softened), 1).astype(noise.dtype) + 1e-300
+            violated = C_s > self.ctol
 
             # Inconsistent: the active set's own excess over the problem's rows is above `ctol`
             # and the final step confirms it (a row outside the working set past `ctol` there:
@@ -337,11 +336,14 @@ class KalmanSQP(AbstractSolver):
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
             def round_(carry):
-                k, _ = carry
+                k, (*_, before, _, held) = carry
                 elastic, softer = k >= 1, k == 2
+                # the third round softens the violated rows, and those that held the elastic step
+                soft = softer & (violated | (held & before[:n_soft]))
+                noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(soft, prior_var[:n_soft], 0.0)))
+                noise = noise / jnp.maximum(m + jnp.sum(soft), 1).astype(noise.dtype) + 1e-300
                 r_eq = jnp.where(softer, noise, jnp.where(elastic, r_soft, r))
                 d_eq, P_eq = self._equality_step(prior, P, ev, r_eq, refine=~elastic)
-                soft = softer & softened
                 # (their observations only in that round: a scan over every path row otherwise)
                 d_eq, P_eq = lax.cond(
                     softer,
@@ -376,16 +378,29 @@ class KalmanSQP(AbstractSolver):
                     | (jnp.max(final[:n_rows], initial=-jnp.inf) > 100.0 * self.ctol)
                     | (jnp.max(final[n_rows:n_checked], initial=-jnp.inf) > box_slack)
                 )
-                return k + 1, (d, P2, active, inconsistent)
+                # Held: the elastic step lowers E's linear model by less than 1 % while path
+                # or terminal rows that are met, not the step's box, hold it (a stationary point of |E|^2 with
+                # those rows hard is no stationary point of the violation, where a row at its
+                # bound costs only (C + C_a d)^2: a least time whose half-space held the level at
+                # its bound and tf at 0.06 of the least, CONSTRAINT_STATIONARY; issue 49)
+                held = (
+                    elastic
+                    & ~softer
+                    & ~jnp.any(violated)
+                    & (jnp.sum((ev.E + ev.H @ d) ** 2) > 0.98 * jnp.sum(ev.E**2))
+                    & jnp.any(active[:n_soft])
+                    & ~jnp.any(active[n_rows:n_checked])
+                )
+                return k + 1, (d, P2, active, inconsistent, held)
 
             def again(carry):
-                k, (*_, inconsistent) = carry
+                k, (*_, inconsistent, held) = carry
                 # (the third round only where it softens a row: else it repeats the second)
-                third = (k == 2) & inconsistent & jnp.any(softened)
+                third = (k == 2) & ((inconsistent & jnp.any(violated)) | held)
                 return (k == 0) | ((k == 1) & (pinned_violated | inconsistent)) | third
 
-            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False))
-            _, (d, P1, active, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
+            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False), jnp.array(False))
+            _, (d, P1, active, _, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
             if gap_rows is not None:
                 gaps_held = jnp.where(active[C.shape[0] - gap_rows[0].shape[0] :, None], gap_rows[1], 0.0)
             active = active[:n_rows]

@@ -234,17 +234,22 @@ def stationarity_multipliers(ev, a, tol):
 
 def infeasibility_stationarity(ev, tol):
     """The same residual for the constraint violation phi = 1/2 |E|^2 + 1/2 |max(C, 0)|^2
-    (no equality rows): |grad phi + C_a^T nu| over nu >= 0 on the inequality rows with
-    |C| <= `tol` (met, or violated by no more than round-off: a final time pressed to 0
-    from above ends at C = +3e-15). Zero (relative to |H| |E|) at a point where no step that
-    keeps those rows can lower the violation to first order: locally infeasible."""
+    (no equality rows): |grad phi + V_a^T nu| over nu >= 0 on the parameter rows V (bounds,
+    knot gaps, time span: no solver crosses them) with |V| <= `tol` (met, or violated by no
+    more than round-off: a final time pressed to 0 from above ends at V = +3e-15). Zero
+    (relative to |H| |E|) at a point where no step that keeps those rows can lower the
+    violation to first order: locally infeasible. A path or terminal row at its bound holds
+    nothing: crossing it costs phi only to second order (a least time whose half-space held
+    the point was called infeasible where a step through it lowers the violation; issue 49)."""
     rows = inequality_rows(ev)
     grad = ev.H.T @ ev.E
     if rows is None:
         return jnp.linalg.norm(grad)
     C, C_a = rows
     grad = grad + C_a.T @ jnp.maximum(C, 0.0)
-    return signed_multipliers(grad, ev.H[:0], C_a, jnp.abs(C) <= tol, exact=False)[0]
+    if ev.V is None:
+        return jnp.linalg.norm(grad)
+    return signed_multipliers(grad, ev.H[:0], ev.V_a, jnp.abs(ev.V) <= tol, exact=False)[0]
 
 
 def locally_infeasible(ev, tol, rtol):
