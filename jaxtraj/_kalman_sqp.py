@@ -476,12 +476,25 @@ class KalmanSQP(AbstractSolver):
         that meets the linearized constraints, but a step cut short (a radius, a box, a normal
         step cut to the trust region) leaves part of E by design, and a correction to
         E(a + d) = 0 took the rest of the feasibility step without the cut, 100x longer than
-        d (orbit raising under the line search STALLED: docs/history.md, session 40)."""
+        d (orbit raising under the line search STALLED: docs/history.md, session 40).
+        The parameter rows (bounds, `Evaluation.V`: linear, never crossed) stay honoured: those
+        that d meets or holds are observed as C_a d_soc = 0, and the correction is scaled back
+        so that it crosses no other (a correction that ignored them took a pendulum's level
+        2e-2 past its bound under the line search, which then STALLED there)."""
         P = _covariance(B)
         r = self.r_rel * jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H) + 1e-300
-        err = curvature_error(ev, E_cand, d)
-        dc, _, _ = sequential_update(jnp.zeros_like(d), P, ev.H, -err, r)
-        dc, _, _ = sequential_update(dc, P, ev.H, -err, r)
+        rows, target = ev.H, -curvature_error(ev, E_cand, d)
+        on = jnp.ones(target.shape, bool)
+        if ev.V is not None:
+            at = ev.V + ev.V_a @ d  # the parameter rows at the step
+            rows, target = jnp.concatenate([rows, ev.V_a]), jnp.concatenate([target, jnp.zeros_like(at)])
+            r = jnp.concatenate([r, self.r_rel * jnp.einsum("ip,pq,iq->i", ev.V_a, P, ev.V_a) + 1e-300])
+            on = jnp.concatenate([on, at >= -self.ctol])
+        dc, _, _ = sequential_update(jnp.zeros_like(d), P, rows, target, r, active=on)
+        dc, _, _ = sequential_update(dc, P, rows, target, r, active=on)
+        if ev.V is not None:
+            rate, room = ev.V_a @ dc, jnp.maximum(-at, 0.0) + self.ctol
+            dc = jnp.min(jnp.where(rate > room, room / rate, 1.0), initial=1.0) * dc
         total, _ = keep_knots_ordered(d + dc, P, knots, dknots, self.a_t, collapse=self.path_active)
         return jnp.where(jnp.all(jnp.isfinite(total)), total - d, 0.0)
 
