@@ -462,6 +462,44 @@ def test_second_order_correction_corrects_the_curvature_of_a_cut_step():
         assert np.linalg.norm(d_soc) < 0.1 * np.linalg.norm(d)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_second_order_correction_keeps_the_parameter_bounds(seed):
+    """Random B, two constraint rows and three parameter bounds: one met by the step d (held),
+    one with room 0.05, one far. The correction is the least-B-norm d_soc with H d_soc = -miss
+    and the held bound's row at 0 (a KKT solve in NumPy), scaled back to the largest share
+    that crosses no other bound. Before, it ignored the bounds: the line search's pendulum
+    minimum time took a level 2e-2 past its bound and STALLED there."""
+    rng = np.random.default_rng(seed)
+    n = 5
+    M = rng.normal(size=(n, n))
+    B, H = M @ M.T + 0.5 * np.eye(n), rng.normal(size=(2, n))
+    d = rng.normal(size=n)
+    # a_i - upper_i <= 0 at the current point (V), d meets row 0, leaves 0.05 on row 1
+    V_a = np.eye(n)[:3]
+    V = -np.array([d[0], d[1] + 0.05, d[2] + 10.0])
+    miss = rng.normal(size=2)
+    # the correction without the bounds pushes rows 0 and 1 up: sign the miss so that it does
+    free = -np.linalg.solve(B, H.T @ np.linalg.solve(H @ np.linalg.solve(B, H.T), miss))
+    miss = miss * np.sign(free[1])
+    ev = Evaluation(
+        xf=None, xf_a=None, tf=None, G=0.0, G_a=jnp.zeros(n), E=jnp.zeros(2), H=jnp.asarray(H), status=None,
+        V=jnp.asarray(V), V_a=jnp.asarray(V_a),
+    )  # fmt: skip
+    E_cand = miss + H @ d  # E(a + d): the linear model E + H d missed by `miss`
+    d_soc = eqx.filter_jit(jt.KalmanSQP().correction)(
+        ev, jnp.asarray(B), jnp.asarray(E_cand), jnp.array([0.0, 1.0]), jnp.zeros((2, n)), jnp.asarray(d)
+    )
+    # the reference: min 1/2 x^T B x s.t. [H; e_0] x = [-miss; 0], then the ratio test
+    A = np.vstack([H, V_a[:1]])
+    K = np.block([[B, A.T], [A, np.zeros((3, 3))]])
+    x = np.linalg.solve(K, np.concatenate([np.zeros(n), -miss, [0.0]]))[:n]
+    rate, room = V_a @ x, np.maximum(-(V + V_a @ d), 0.0)
+    share = min(1.0, *(room[i] / rate[i] for i in (1, 2) if rate[i] > room[i]))
+    assert share < 1.0  # the scale-back is exercised
+    np.testing.assert_allclose(np.asarray(d_soc), share * x, rtol=0, atol=1e-8 * (1.0 + np.abs(x).max()))
+    assert np.max(V + V_a @ (d + np.asarray(d_soc))) <= 1e-8  # no bound crossed
+
+
 @pytest.mark.slow
 def test_pure_bfgs_ends_in_another_local_minimum_on_case_3():
     """Why the first iterations use exact Hessians: with BFGS from a0's Hessian alone, the
