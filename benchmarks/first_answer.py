@@ -29,6 +29,9 @@ step): what each costs of the whole program. `--cache` runs the default solver's
 three new processes that share one empty folder of `jt.enable_compilation_cache`, and three that
 add `jt.enable_solve_cache`: a script run again (`--cache-only`: that table alone).
 
+`--opt-levels 3 1 0` (issue 53): the default's first call and warm run on every gallery problem
+with XLA:CPU's backend optimization at each level (one lowering, one compile per level).
+
 Run: `python benchmarks/first_answer.py [--case 4 | --problem bryson-denham] [--repeats 3]
 [--pieces] [--cache | --cache-only]` or `python benchmarks/first_answer.py --size [--no-compile]`.
 """
@@ -82,6 +85,40 @@ def first_call(solver, problem, control, a0, simulator):
     jax.block_until_ready(sol.params)
     t3 = time.perf_counter()
     return t1 - t0, t2 - t1, t3 - t2, len(lowered.as_text().splitlines()), sol
+
+
+def opt_levels(levels, repeats):
+    """The default's first call on every gallery problem (naive start, RK4(40)) with XLA:CPU's
+    backend optimization at each of `levels` (`compiler_options`, one compile per level of
+    the same lowered program; XLA's default is 3): trace + lower, compile, first run, and the
+    warm run of that compiled program (best of `repeats`)."""
+    solver = jt.KalmanSQP()
+    cols = " | ".join(f"level {v}: compile / first call / warm (s)" for v in levels)
+    print(f"| problem | trace + lower (s) | {cols} | status |")
+    print("|---|---:|" + "---|" * len(levels) + "---|")
+    for name in jt.problems.classic.names():
+        entry = jt.problems.classic.get(name)
+        inputs = (solver, entry.problem, entry.control, entry.start, jt.RK4(40), MAX_STEPS, 0)
+        jax.clear_caches()
+        t0 = time.perf_counter()
+        lowered = run.lower(*inputs)
+        lower = time.perf_counter() - t0
+        cells, statuses = [], set()
+        for level in levels:
+            t0 = time.perf_counter()
+            compiled = lowered.compile(compiler_options={"xla_backend_optimization_level": level})
+            t1 = time.perf_counter()
+            sol = compiled(*inputs)
+            jax.block_until_ready(sol.params)
+            first = time.perf_counter() - t1
+            best = np.inf
+            for _ in range(repeats):
+                t2 = time.perf_counter()
+                jax.block_until_ready(compiled(*inputs).params)
+                best = min(best, time.perf_counter() - t2)
+            statuses.add(f"{jt.status_name(sol.status)} {int(sol.iterations)} its")
+            cells.append(f"{t1 - t0:.2f} / {lower + t1 - t0 + first:.2f} / {best:.3f}")
+        print(f"| {name} | {lower:.2f} | {' | '.join(cells)} | {', '.join(sorted(statuses))} |", flush=True)
 
 
 def _integrators(m):
@@ -270,7 +307,18 @@ def main():
     parser.add_argument("--cache-only", action="store_true", help="--cache without the solvers' table")
     parser.add_argument("--size", action="store_true", help="the first call against segments and controls (issue 53)")
     parser.add_argument("--no-compile", action="store_true", help="with --size: HLO lines and trace time only")
+    parser.add_argument(
+        "--opt-levels", type=int, nargs="+", metavar="LEVEL", help="the gallery's first call at these XLA:CPU levels"
+    )
     args = parser.parse_args()
+    if args.opt_levels:
+        print(
+            f"# the gallery, the default solver, RK4(40), naive starts, XLA:CPU backend optimization levels; "
+            f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}; "
+            f"command: python {' '.join(sys.argv)}; {time.strftime('%Y-%m-%d')}\n"
+        )
+        opt_levels(args.opt_levels, args.repeats)
+        return
     if args.size:
         print(
             f"# size study, the default solver, RK4(10); {platform.processor() or platform.machine()}, "
