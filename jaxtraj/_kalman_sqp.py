@@ -378,11 +378,11 @@ class KalmanSQP(AbstractSolver):
                     | (jnp.max(final[:n_rows], initial=-jnp.inf) > 100.0 * self.ctol)
                     | (jnp.max(final[n_rows:n_checked], initial=-jnp.inf) > box_slack)
                 )
-                # Held: the elastic step lowers E's linear model by less than 1 % while path
-                # or terminal rows that are met, not the step's box, hold it (a stationary point of |E|^2 with
-                # those rows hard is no stationary point of the violation, where a row at its
-                # bound costs only (C + C_a d)^2: a least time whose half-space held the level at
-                # its bound and tf at 0.06 of the least, CONSTRAINT_STATIONARY; issue 49)
+                # Held: the elastic step lowers E's linear model by less than 1 % while met
+                # path or terminal rows, not the step's box, hold it (a stationary point of
+                # |E|^2 with those rows hard is none of the violation, where a row at its bound
+                # costs only (C + C_a d)^2: a least time whose half-space held the level at its
+                # bound and tf at 0.07 of the least ended CONSTRAINT_STATIONARY; issue 49)
                 held = (
                     elastic
                     & ~softer
