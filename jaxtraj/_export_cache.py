@@ -8,6 +8,7 @@ exported program of `_driver.run` keyed on the problem's fingerprint (`_fingerpr
 problem_fingerprint`: what the problem computes, not its names), the static configuration
 of problem and control, the solver, the simulator, `max_steps`, the shapes and dtypes of the
 arrays (not their values: they are the program's inputs), the JAX and jaxlib versions,
+JAX's options that change the traced program (`_OPTIONS`: matmul precision, ...),
 jaxtraj's source and the backend. A miss exports the program once (the trace and lowering a
 solve pays anyway) and writes it atomically (a temporary file renamed). A corrupt (its
 program is checked by SHA-256), foreign or unreadable entry is ignored: the solve traces as
@@ -144,9 +145,20 @@ def _ours(x) -> bool:
     return True
 
 
+#: JAX's options that change what a traced program computes (`jax.jit` keys on them too): a
+#: program exported under `jax.default_matmul_precision("bfloat16")` was served under the
+#: default precision, and the other way round.
+_OPTIONS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion")
+
+
+def _options() -> str:
+    """The values of `_OPTIONS` now (a context manager's included)."""
+    return "; ".join(f"{name}={getattr(jax.config, name)}" for name in _OPTIONS)
+
+
 def _key(solver, a0, simulator, max_steps, dynamic, static) -> str:
     h = hashlib.sha256(FORMAT.encode())
-    for part in (jax.__version__, _library_versions(), _version(), jax.default_backend(), str(max_steps)):
+    for part in (jax.__version__, _library_versions(), _version(), jax.default_backend(), str(max_steps), _options()):
         h.update(part.encode() + b"\0")
     # the problem's and control's arrays are the program's inputs, not part of it: their
     # values (zeros here) stay out of the key, so that new `args` or `x0` hit the entry
@@ -284,7 +296,7 @@ def _memo_key(solver, simulator, max_steps, treedef, static, args):
     try:
         static_leaves, static_def = jax.tree.flatten(static)
         shapes = tuple((np.shape(x), x.dtype, getattr(x, "weak_type", False)) for x in args)
-        memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes)
+        memo_key = (treedef, static_def, tuple(static_leaves), solver, simulator, max_steps, shapes, _options())
         hash(memo_key)
     except TypeError:
         return None

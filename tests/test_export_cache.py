@@ -346,3 +346,28 @@ def test_a_default_folder_that_is_a_file_names_the_variable(tmp_path, monkeypatc
     with pytest.raises(ValueError, match=r"^The default folder \(`\$JAXTRAJ_CACHE_DIR`.* is a file"):
         jt.enable_solve_cache()
     assert (tmp_path / "file").read_text() == "x"
+
+
+def _program_text(path):
+    data = path.read_bytes()
+    blob = data[len(b"JAXTRAJ-EXPORT\n") :].partition(b"\n")[2]
+    return jax.export.deserialize(bytearray(blob)).mlir_module()
+
+
+def test_a_program_exported_under_another_matmul_precision_is_not_served(tmp_path):
+    """The key left out JAX's options: a solve under `jax.default_matmul_precision("highest")`
+    was answered by the program exported under the default precision (and the other way
+    round), in this process and from disk."""
+    problem, control = gain_reach()
+    solve = lambda: jt.solve(problem, control, np.zeros(control.num_params), simulator=jt.RK4(5))
+    try:
+        jt.enable_solve_cache(tmp_path)
+        assert float(solve().objective) == pytest.approx(0.125, rel=1e-9)
+        with jax.default_matmul_precision("highest"):
+            assert float(solve().objective) == pytest.approx(0.125, rel=1e-9)
+        entries = sorted(tmp_path.glob("solve-*.jaxexport"), key=os.path.getmtime)
+        assert len(entries) == 2
+        # (the default leaves most products' precision to the backend; "highest" names it on each)
+        assert _program_text(entries[1]).count("HIGHEST") > _program_text(entries[0]).count("HIGHEST")
+    finally:
+        jt.disable_solve_cache()
