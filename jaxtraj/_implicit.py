@@ -16,7 +16,9 @@ iterations are never differentiated, and the start a0 has no derivative.
 The KKT matrix is solved by its null-space form: the active rows, each scaled to unit
 norm, by an SVD (their rank is the number of active rows, else the matrix is singular),
 then W on the rows' null space (positive definite at a strict local minimum, else
-singular). A solve that did not end SUCCESS, a singular KKT matrix or a non-finite
+singular). The tangents themselves use the rows' pseudo-inverse, whose derivative (forward
+mode over them: `jax.hessian`) is finite where the SVD's is not (repeated zero singular
+values). A solve that did not end SUCCESS, a singular KKT matrix or a non-finite
 quantity gives NaN tangents, never a silent number (docs/differentiable.md).
 
 Everything here is forward mode in the parameters (`jax.jacfwd`), so that any simulator
@@ -219,6 +221,8 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
     norms = jnp.linalg.norm(Jall, axis=1)
     active = keep & ~weak_rows(G_a, H, J, rows, lam, active_tol)
     lam = lam.at[m:].set(jnp.where(active, lam[m:], 0.0))
+    if m + r:
+        lam = _with_smooth_tangent(lam, G_a, Jall, jnp.concatenate([jnp.ones(m, bool), active]), a)
     on = jnp.concatenate([jnp.ones(m, bool), active & ~_knot_duplicates(problem, control, simulator, rows, J, active)])
 
     # W: the exact Hessian of the Lagrangian with the active multipliers (`lagrangian_hessian`
@@ -253,6 +257,18 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
         s=s,
         rank=rank,
     )
+
+
+def _with_smooth_tangent(lam, G_a, Jall, held, a):
+    """`lam` (the multipliers of the rows `held`, by `signed_multipliers`), with the tangent of
+    the least-norm least-squares multipliers of those rows instead of its own: the same
+    numbers at a KKT point, but `signed_multipliers`' solve (an SVD with zero columns)
+    has an infinite derivative where two rows are out, and forward mode over the tangent
+    computation (`jax.hessian`) met it in the Hessian of the Lagrangian."""
+    D = parameter_scale(a)
+    A = jnp.where(held[:, None], Jall * D[None], 0.0)
+    smooth = jnp.where(held, -(jnp.linalg.pinv(A).T @ (G_a * D)), 0.0)
+    return jax.lax.stop_gradient(lam) + (smooth - jax.lax.stop_gradient(smooth))
 
 
 @eqx.filter_jit
@@ -299,18 +315,19 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
     r1 = dG_a + dH.T @ k.multipliers[:m] + dJ.T @ k.multipliers[m:]
     r2 = jnp.where(k.rows_on, jnp.concatenate([dE, drows]) / k.row_scale, 0.0)
 
-    # null-space solve of [[W, J_A^T], [J_A, 0]] [da; dlam] = -[r1; r2]: da = Vt^T (dy + dz),
-    # dy on the active rows' range (Vt's first `rank` rows), dz on their null space
+    # null-space solve of [[W, J_A^T], [J_A, 0]] [da; dlam] = -[r1; r2]: da = dy + dz, dy on
+    # the active rows' range (the least-norm solution of J_A dy = -r2), dz on their null
+    # space. By the pseudo-inverse, not by `k.Vt`: the SVD's own derivative is infinite where
+    # singular values repeat (two zeros: most problems), and forward mode over this (`jax.
+    # hessian`) gave NaN; the pseudo-inverse's is finite at a constant rank.
     n = a.shape[0]
-    y = jnp.arange(n) < k.rank
-    z = ~y
     Js = jnp.where(k.rows_on[:, None], jnp.concatenate([first[2], first[4]]) / k.row_scale[:, None], 0.0)
-    dy = jnp.where(y, -((Js @ k.Vt.T).T @ r2) / jnp.where(y, k.s**2, 1.0), 0.0)
-    Hrot = k.Vt @ k.W @ k.Vt.T
-    Mz = jnp.where(z[:, None] & z[None, :], Hrot, jnp.eye(n, dtype=a.dtype))
-    dz = jnp.linalg.solve(Mz, jnp.where(z, -(k.Vt @ r1) - Hrot @ dy, 0.0))
+    Jp = jnp.linalg.pinv(Js)
+    null = jnp.eye(n, dtype=a.dtype) - Jp @ Js  # the projector onto the null space
+    dy = -(Jp @ r2)
+    dz = jnp.linalg.solve(null @ k.W @ null + (jnp.eye(n, dtype=a.dtype) - null), -(null @ (r1 + k.W @ dy)))
     nan_unless_ok = jnp.where(k.differentiable, 1.0, jnp.nan)  # a factor, not a select: it survives transposition
-    da = k.Vt.T @ (dy + dz) * nan_unless_ok
+    da = (dy + dz) * nan_unless_ok
 
     def values(a, theta):
         p, c = eqx.combine(theta, rest)
@@ -318,10 +335,8 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
 
     _, tangents = _jvp(values, (a, theta), (da, dtheta), explicit)
     # the multipliers' tangent from the first block row: J_A^T dlam_A = -(r1 + W da), least
-    # squares in the unit-scaled rows (Js = U S Vt: Js^T w = b gives w = U S^-1 Vt b, with U S
-    # = Js Vt^T), w = row_scale x dlam_A; zero off the active set
-    b = k.Vt @ (r1 + k.W @ da)
-    w = -(Js @ k.Vt.T) @ jnp.where(y, b / jnp.where(y, k.s**2, 1.0), 0.0)
+    # squares in the unit-scaled rows, w = row_scale x dlam_A; zero off the active set
+    w = -(Jp.T @ (r1 + k.W @ da))
     dlam = jnp.where(k.rows_on, w / k.row_scale, 0.0)
     tangents["multipliers"] = dlam[:m]
     if problem.terminal_inequality is not None:

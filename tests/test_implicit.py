@@ -720,3 +720,46 @@ def test_a_python_float_differentiated_as_args_has_its_derivative():
     assert float(jax.grad(single)(2.0)) == pytest.approx(-0.125, rel=1e-8)
     assert float(jax.jvp(single, (2.0,), (1.0,))[1]) == pytest.approx(-0.125, rel=1e-8)
     assert float(jax.grad(batch)(2.0)) == pytest.approx(-0.25, rel=1e-8)
+
+
+def test_hessian_where_the_parameters_outnumber_the_active_rows_by_two():
+    """x' = g u to x(1) = d at least energy on 4 linear pieces (5 parameters, one active row):
+    J = d^2 / (2 g^2). The tangent computation's SVD of the active rows has three zero
+    singular values there, whose derivative is infinite: `jax.hessian` was NaN (the closed
+    forms held only where the parameters outnumber the rows by at most one)."""
+    problem = jt.Problem(
+        lambda t, x, u, args: args["g"] * u, np.zeros(1), lambda tf, xf, args: xf - args["d"], ("x(1) = d",),
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
+        args={"g": jnp.asarray(2.0), "d": jnp.asarray(1.0)},
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(4))
+
+    def J(g, d):
+        prob = eqx.tree_at(lambda p: p.args, problem, {"g": g, "d": d})
+        return jt.solve(prob, control, np.zeros(control.num_params), simulator=SIM).objective
+
+    g, d = 2.0, 1.0
+    H = jax.hessian(J, argnums=(0, 1))(jnp.asarray(g), jnp.asarray(d))
+    want = [[3 * d**2 / g**4, -2 * d / g**3], [-2 * d / g**3, 1 / g**2]]
+    np.testing.assert_allclose(np.array(H), want, rtol=1e-8)
+
+
+def test_hessian_with_inactive_inequality_rows():
+    """x' = u to x(tf) = d, min c tf + int u^2 / 2 with tf <= T active (and x <= 10, inactive
+    on every grid point): J = d^2 / (2 T) + c T, Hessian [[1 / T, -d / T^2], [-d / T^2,
+    d^2 / T^3]] in (d, T). The multipliers' least squares zeroes the columns of the rows
+    out of the active set, and its derivative was infinite with two of them: NaN."""
+    problem = jt.Problem(
+        lambda t, x, u, args: u, np.zeros(1), lambda tf, xf, args: xf - args["d"], ("x = d",),
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), objective=lambda tf, xf, args: args["c"] * tf,
+        args={"d": jnp.asarray(1.0), "c": jnp.asarray(0.25)}, tf_bounds=(0.1, 1.0), state_upper=10.0,
+    )  # fmt: skip
+    control = jt.controls.PiecewiseConstant(2, free_times=False)
+
+    def J(d, T):
+        prob = eqx.tree_at(lambda p: (p.args["d"], p.tf_bounds[1]), problem, (d, T))
+        return jt.solve(prob, control, control.initial_guess(0.9, 1.0, 1.0), simulator=SIM).objective
+
+    d, T = 1.0, 1.0
+    H = jax.hessian(J, argnums=(0, 1))(jnp.asarray(d), jnp.asarray(T))
+    np.testing.assert_allclose(np.array(H), [[1 / T, -d / T**2], [-d / T**2, d**2 / T**3]], rtol=1e-8)
