@@ -56,6 +56,15 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
     require_float64()
     if not isinstance(problem, Problem):
         raise ValueError(f"`problem` must be a jaxtraj.Problem; got {type(problem).__name__}.")
+    n, x0 = len(problem.state_names), problem.x0  # (`num_states` reads x0's shape)
+    is_array = isinstance(x0, jax.Array | np.ndarray)
+    if not (is_array and x0.shape == (n,)):
+        # (a list or a scalar put in with eqx.tree_at failed deep inside the integration)
+        got = f"shape {x0.shape}" if is_array else f"a {type(x0).__name__}"
+        raise ValueError(
+            f"`problem.x0` must be an array of shape ({n},) (the states {problem.state_names}); got {got}. "
+            "Put in a new one with `eqx.tree_at(lambda p: p.x0, problem, problem.x0.at[:k].set(value))`."
+        )
     if not isinstance(control, AbstractControl):
         raise ValueError(f"`control` must be a jaxtraj control (jt.controls.*); got {type(control).__name__}.")
     if control.num_controls != problem.num_controls:

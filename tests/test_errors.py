@@ -1,6 +1,7 @@
 """Bad input fails early, outside jit, with a ValueError naming the argument, the expected
 and the received value."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -584,3 +585,21 @@ def test_a_traced_x0_or_final_time_names_the_tree_at_route(label):
 
     with pytest.raises(ValueError, match=rf"`{label}` is traced .*eqx\.tree_at\(lambda p: p\.{label}"):
         jax.grad(build)(1.0)
+
+
+@pytest.mark.parametrize("x0", [[0.0, 0.0], 0.0, np.zeros(1), np.zeros((2, 1))])
+def test_an_x0_put_in_that_is_no_state_array_is_named(x0):
+    """`eqx.tree_at(lambda p: p.x0, problem, x0)` with a list, a scalar or another shape (the
+    Mayer form's x0 holds the running cost too): an AttributeError or a scan's carry mismatch
+    deep inside the integration, plain or under `jax.grad`."""
+    problem, control = gain_reach()
+
+    def objective(x0):
+        prob = eqx.tree_at(lambda p: p.x0, problem, x0)
+        return jt.solve(prob, control, np.zeros(control.num_params), simulator=jt.RK4(5)).objective
+
+    message = r"^`problem\.x0` must be an array of shape \(2,\) \(the states \('x1', 'running cost'\)\); got "
+    with pytest.raises(ValueError, match=message):
+        objective(x0)
+    with pytest.raises(ValueError, match=message):
+        jax.grad(objective)(jax.tree.map(jnp.asarray, x0))
