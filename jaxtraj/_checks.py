@@ -6,6 +6,7 @@ import functools
 import os
 import re
 
+import equinox as eqx
 import jax
 import jax.core
 import jax.numpy as jnp
@@ -102,6 +103,37 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
             f"({', '.join(wants) or 'no fixed final time, no free initial state'}): pass "
             "`problem.parametrize(family)` for a control family (jt.controls.*)."
         )
+
+
+#: Why a traced final time of the problem must be the control's too.
+FINAL_TIME_DIFFERS = (
+    "`problem.final_time` and the final time of `control` differ: a fixed final time lives in the "
+    "control too (the solve reads the control's). After `eqx.tree_at(lambda p: p.final_time, problem, T)`, "
+    "rebuild the control: `control = problem.parametrize(family)`."
+)
+
+
+def follow_final_time(problem: Problem, control: AbstractControl, a):
+    """`(control, a)` for a fixed final time that is traced in the problem or the control (not
+    the same array in both): `a` raises `FINAL_TIME_DIFFERS` at run time where the two differ,
+    and a control whose final time is concrete takes the problem's traced one, which the
+    solve read nowhere: `jax.grad` in `problem.final_time` without rebuilding the control
+    was 0 and `jax.vmap` over it solved at the control's one time, silently."""
+    inner = control.control if isinstance(control, FreeInitialState) else control
+    T = problem.final_time
+    if T is None or not isinstance(inner, FixedFinalTime) or T is inner.final_time:
+        return control, a
+    traced = [isinstance(v, jax.core.Tracer) for v in (T, inner.final_time)]
+    if not any(traced):  # (concrete ones: `check_problem_and_control`)
+        return control, a
+    a = eqx.error_if(a, jnp.any(jnp.asarray(T) != inner.final_time), f"jt.solve: {FINAL_TIME_DIFFERS}")
+    if traced[0] and not traced[1]:
+        T = jnp.asarray(T, dtype=jnp.float64)
+        if isinstance(control, FreeInitialState):
+            control = eqx.tree_at(lambda c: c.control.final_time, control, T)
+        else:
+            control = eqx.tree_at(lambda c: c.final_time, control, T)
+    return control, a
 
 
 def closed_over_tracer(problem: Problem) -> str | None:

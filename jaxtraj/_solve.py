@@ -15,6 +15,7 @@ from ._checks import (
     check_problem_and_control,
     check_solver_memory,
     closed_over_tracer,
+    follow_final_time,
     is_count,
     memory_refusal,
     traced_bounds,
@@ -90,6 +91,7 @@ def solve(
     """
     solver, max_steps = check_solver(solver, max_steps)
     a0 = check_start(problem, control, a0)
+    control, a0 = follow_final_time(problem, control, a0)
     check_simulator(simulator)
     solver.check(problem, control)
     check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import load_benchmark, rel_err
+from helpers import gain_reach, load_benchmark, rel_err
 from test_compilation import compilations
 
 import jaxtraj as jt
@@ -763,3 +763,20 @@ def test_hessian_with_inactive_inequality_rows():
     d, T = 1.0, 1.0
     H = jax.hessian(J, argnums=(0, 1))(jnp.asarray(d), jnp.asarray(T))
     np.testing.assert_allclose(np.array(H), [[1 / T, -d / T**2], [-d / T**2, d**2 / T**3]], rtol=1e-8)
+
+
+def test_a_final_time_changed_in_the_problem_only_is_followed_or_refused():
+    """x' = 2 u to x(T) = 1 at least energy: J = 1 / (8 T), dJ/dT = -1/8 at T = 1. A traced
+    `problem.final_time` without `problem.parametrize(family)` again (the control keeps its
+    own copy, the one the solve reads): `jax.grad` was 0 and `jax.vmap` over T solved every
+    T at the control's, silently. Now the control follows the traced one where the values
+    agree, and other values are an error."""
+    problem, control = gain_reach()
+
+    def objective(T):
+        prob = eqx.tree_at(lambda p: p.final_time, problem, T)
+        return jt.solve(prob, control, np.zeros(control.num_params), simulator=jt.RK4(5)).objective
+
+    assert float(jax.grad(objective)(1.0)) == pytest.approx(-0.125, rel=1e-8)
+    with pytest.raises(Exception, match=r"`problem\.final_time` and the final time of `control` differ"):
+        jax.vmap(objective)(jnp.array([1.0, 2.0]))
