@@ -603,3 +603,21 @@ def test_an_x0_put_in_that_is_no_state_array_is_named(x0):
         objective(x0)
     with pytest.raises(ValueError, match=message):
         jax.grad(objective)(jax.tree.map(jnp.asarray, x0))
+
+
+def test_bound_arrays_put_in_with_another_shape_are_named():
+    """A state bound with more entries than bounded states was more path rows, silently
+    (Bryson-Denham's x <= l as two equal rows: a SUCCESS, then NaN derivatives); a `tf_bounds`
+    side of shape (2,) failed in a reshape inside the solve."""
+    bd = jt.problems.classic.get("bryson-denham")
+    prob = eqx.tree_at(lambda p: p.path.fn.upper, bd.problem, jnp.full(2, 1 / 9))
+    with pytest.raises(ValueError, match=r"^`problem\.path\.fn\.upper` must have shape \(1,\) .* got shape \(2,\)"):
+        jt.solve(prob, bd.control, bd.start, simulator=jt.RK4(4))
+    problem = jt.Problem(
+        lambda t, x, u, args: u, np.zeros(1), lambda tf, xf, args: xf - 1.0, ("x(tf) = 1",), tf_bounds=(0.5, 2.0),
+        control_lower=-1.0, control_upper=1.0,
+    )  # fmt: skip
+    control = jt.controls.PiecewiseConstant(2)
+    prob = eqx.tree_at(lambda p: p.tf_bounds[1], problem, jnp.ones(2))
+    with pytest.raises(ValueError, match=r"^`problem\.tf_bounds\[1\]` must have shape \(\); got shape \(2,\)"):
+        jt.solve(prob, control, control.initial_guess(1.0, 1.0, 1.0))
