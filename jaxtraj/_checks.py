@@ -116,7 +116,8 @@ FINAL_TIME_DIFFERS = (
 
 def follow_final_time(problem: Problem, control: AbstractControl, a):
     """`(control, a)` for a fixed final time that is traced in the problem or the control (not
-    the same array in both): `a` raises `FINAL_TIME_DIFFERS` at run time where the two differ,
+    the same array in both): a ValueError (`FINAL_TIME_DIFFERS`) where the two differ, or
+    where that is known only at run time (under `jit` or `vmap`) `a` raises it then,
     and a control whose final time is concrete takes the problem's traced one, which the
     solve read nowhere: `jax.grad` in `problem.final_time` without rebuilding the control
     was 0 and `jax.vmap` over it solved at the control's one time, silently."""
@@ -127,7 +128,14 @@ def follow_final_time(problem: Problem, control: AbstractControl, a):
     traced = [isinstance(v, jax.core.Tracer) for v in (T, inner.final_time)]
     if not any(traced):  # (concrete ones: `check_problem_and_control`)
         return control, a
-    a = eqx.error_if(a, jnp.any(jnp.asarray(T) != inner.final_time), f"jt.solve: {FINAL_TIME_DIFFERS}")
+    differs = jnp.any(jnp.asarray(T, dtype=jnp.float64) != inner.final_time)
+    try:  # (concrete under an eager jax.grad or jax.jvp)
+        concrete = bool(differs)
+    except jax.errors.ConcretizationTypeError:
+        a = eqx.error_if(a, differs, f"jt.solve: {FINAL_TIME_DIFFERS}")
+    else:
+        if concrete:
+            raise ValueError(FINAL_TIME_DIFFERS)
     if traced[0] and not traced[1]:
         T = jnp.asarray(T, dtype=jnp.float64)
         if isinstance(control, FreeInitialState):

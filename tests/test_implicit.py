@@ -777,6 +777,15 @@ def test_a_final_time_changed_in_the_problem_only_is_followed_or_refused():
         prob = eqx.tree_at(lambda p: p.final_time, problem, T)
         return jt.solve(prob, control, np.zeros(control.num_params), simulator=jt.RK4(5)).objective
 
+    def batch(T):
+        prob = eqx.tree_at(lambda p: p.final_time, problem, T)
+        starts = np.zeros((1, control.num_params))
+        return jt.solve_batch(prob, control, starts, simulator=jt.RK4(5), progress=False, history=False).objective[0]
+
     assert float(jax.grad(objective)(1.0)) == pytest.approx(-0.125, rel=1e-8)
-    with pytest.raises(Exception, match=r"`problem\.final_time` and the final time of `control` differ"):
+    assert float(jax.grad(batch)(1.0)) == pytest.approx(-0.125, rel=1e-8)
+    differ = r"`problem\.final_time` and the final time of `control` differ"
+    with pytest.raises(ValueError, match=differ):
+        jax.grad(objective)(2.0)
+    with pytest.raises(Exception, match=differ):
         jax.vmap(objective)(jnp.array([1.0, 2.0]))

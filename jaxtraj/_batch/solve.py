@@ -13,7 +13,13 @@ import numpy as np
 from jax.sharding import Mesh
 
 from .. import io as _io
-from .._checks import check_memory, check_problem_and_control, check_solver_memory, memory_refusal
+from .._checks import (
+    check_memory,
+    check_problem_and_control,
+    check_solver_memory,
+    follow_final_time,
+    memory_refusal,
+)
 from .._configure import unused_cores_hint
 from .._driver import HISTORY_BYTES, AbstractSolver, check_step_counter
 from .._fingerprint import fingerprint, problem_fingerprint
@@ -114,6 +120,7 @@ def solve_batch(
     """
     solver, max_steps = check_solver(solver, max_steps)
     check_problem_and_control(problem, control)
+    control, _ = follow_final_time(problem, control, np.zeros(()))  # (under jit, refused below)
     check_simulator(simulator)
     solver.check(problem, control)
     a0s = _check_a0s(control, a0s)
