@@ -222,7 +222,7 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
     active = keep & ~weak_rows(G_a, H, J, rows, lam, active_tol)
     lam = lam.at[m:].set(jnp.where(active, lam[m:], 0.0))
     if m + r:
-        lam = _with_smooth_tangent(lam, G_a, Jall, jnp.concatenate([jnp.ones(m, bool), active]), a)
+        lam = _with_smooth_tangent(lam, G_a, Jall, jnp.concatenate([jnp.ones(m, bool), active]), parameter_scale(a))
     on = jnp.concatenate([jnp.ones(m, bool), active & ~_knot_duplicates(problem, control, simulator, rows, J, active)])
 
     # W: the exact Hessian of the Lagrangian with the active multipliers (`lagrangian_hessian`
@@ -259,16 +259,46 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
     )
 
 
-def _with_smooth_tangent(lam, G_a, Jall, held, a):
+@jax.custom_jvp
+def _with_smooth_tangent(lam, G_a, Jall, held, D):
     """`lam` (the multipliers of the rows `held`, by `signed_multipliers`), with the tangent of
-    the least-norm least-squares multipliers of those rows instead of its own: the same
-    numbers at a KKT point, but `signed_multipliers`' solve (an SVD with zero columns)
-    has an infinite derivative where two rows are out, and forward mode over the tangent
-    computation (`jax.hessian`) met it in the Hessian of the Lagrangian."""
-    D = parameter_scale(a)
-    A = jnp.where(held[:, None], Jall * D[None], 0.0)
-    smooth = jnp.where(held, -(jnp.linalg.pinv(A).T @ (G_a * D)), 0.0)
-    return jax.lax.stop_gradient(lam) + (smooth - jax.lax.stop_gradient(smooth))
+    the least-norm least-squares multipliers of those rows (in the parameters scaled by `D`)
+    instead of its own: the same numbers at a KKT point, but `signed_multipliers`' solve (an
+    SVD with zero columns) has an infinite derivative where two rows are out, and forward
+    mode over the tangent computation (`jax.hessian`) met it in the Hessian of the
+    Lagrangian. (Only a derivative of this pays the pseudo-inverse.)"""
+    return lam
+
+
+@_with_smooth_tangent.defjvp
+def _with_smooth_tangent_jvp(primals, tangents):
+    lam, G_a, Jall, held, D = primals
+    _, dG_a, dJall, _, dD = tangents
+
+    def smooth(G_a, Jall, D):
+        A = jnp.where(held[:, None], Jall * D[None], 0.0)
+        return jnp.where(held, -(jnp.linalg.pinv(A).T @ (G_a * D)), 0.0)
+
+    return lam, jax.jvp(smooth, (G_a, Jall, D), (dG_a, dJall, dD))[1]
+
+
+@jax.custom_jvp
+def _pinv(J, Vt, inv_s2):
+    """The pseudo-inverse of `J` from its SVD's `Vt` and 1/s^2 (zero past its rank), with
+    Golub and Pereyra's derivative (at a constant rank, as `jnp.linalg.pinv`'s) instead of
+    the SVD's, which is infinite where singular values repeat (two zeros: most problems),
+    so that forward mode over the tangent computation (`jax.hessian`) is no NaN."""
+    return Vt.T @ (inv_s2[:, None] * (Vt @ J.T))
+
+
+@_pinv.defjvp
+def _pinv_jvp(primals, tangents):
+    J, Vt, inv_s2 = primals
+    dJ = tangents[0]
+    p = _pinv(J, Vt, inv_s2)
+    s = (p @ p.T) @ dJ.T
+    t = (dJ.T @ p.T) @ p
+    return p, -(p @ dJ) @ p + s - (s @ J) @ p + t - (p @ J) @ t
 
 
 @eqx.filter_jit
@@ -317,12 +347,12 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
 
     # null-space solve of [[W, J_A^T], [J_A, 0]] [da; dlam] = -[r1; r2]: da = dy + dz, dy on
     # the active rows' range (the least-norm solution of J_A dy = -r2), dz on their null
-    # space. By the pseudo-inverse, not by `k.Vt`: the SVD's own derivative is infinite where
-    # singular values repeat (two zeros: most problems), and forward mode over this (`jax.
-    # hessian`) gave NaN; the pseudo-inverse's is finite at a constant rank.
+    # space. By the pseudo-inverse (`_pinv`), whose derivative (forward mode over this: `jax.
+    # hessian`) is finite where the SVD's is not.
     n = a.shape[0]
     Js = jnp.where(k.rows_on[:, None], jnp.concatenate([first[2], first[4]]) / k.row_scale[:, None], 0.0)
-    Jp = jnp.linalg.pinv(Js)
+    y = jnp.arange(n) < k.rank
+    Jp = _pinv(Js, k.Vt, jnp.where(y, 1.0 / jnp.where(y, k.s**2, 1.0), 0.0))
     null = jnp.eye(n, dtype=a.dtype) - Jp @ Js  # the projector onto the null space
     dy = -(Jp @ r2)
     dz = jnp.linalg.solve(null @ k.W @ null + (jnp.eye(n, dtype=a.dtype) - null), -(null @ (r1 + k.W @ dy)))
