@@ -722,11 +722,12 @@ def test_a_python_float_differentiated_as_args_has_its_derivative():
     assert float(jax.grad(batch)(2.0)) == pytest.approx(-0.25, rel=1e-8)
 
 
+@pytest.mark.slow
 def test_hessian_where_the_parameters_outnumber_the_active_rows_by_two():
     """x' = g u to x(1) = d at least energy on 4 linear pieces (5 parameters, one active row):
-    J = d^2 / (2 g^2). The tangent computation's SVD of the active rows has three zero
-    singular values there, whose derivative is infinite: `jax.hessian` was NaN (the closed
-    forms held only where the parameters outnumber the rows by at most one)."""
+    J = d^2 / (2 g^2), against its closed-form Hessian. The tangent computation took the SVD
+    of the active rows, whose derivative is infinite at repeated zero singular values (three
+    here): `jax.hessian` was NaN. Now pseudo-inverses with Golub and Pereyra's derivative."""
     problem = jt.Problem(
         lambda t, x, u, args: args["g"] * u, np.zeros(1), lambda tf, xf, args: xf - args["d"], ("x(1) = d",),
         running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0,
@@ -744,6 +745,7 @@ def test_hessian_where_the_parameters_outnumber_the_active_rows_by_two():
     np.testing.assert_allclose(np.array(H), want, rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_hessian_with_inactive_inequality_rows():
     """x' = u to x(tf) = d, min c tf + int u^2 / 2 with tf <= T active (and x <= 10, inactive
     on every grid point): J = d^2 / (2 T) + c T, Hessian [[1 / T, -d / T^2], [-d / T^2,
