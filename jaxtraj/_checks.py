@@ -12,7 +12,7 @@ import jax.core
 import jax.numpy as jnp
 import numpy as np
 
-from ._problem import Problem, _OnUserState, _StateBounds, _TimeBounds
+from ._problem import Problem, check_bound_shapes
 from .controls import AbstractControl, FixedFinalTime, FreeInitialState
 
 
@@ -85,7 +85,7 @@ def check_problem_and_control(problem: Problem, control: AbstractControl):
         and not any(isinstance(v, jax.core.Tracer) for v in (T, T_problem))
     ):
         fits = float(T) == float(T_problem)
-    _check_bound_shapes(problem)
+    check_bound_shapes(problem)
     changed = [
         f"{name} {np.asarray(value)} (built with {np.asarray(box)})"
         for name, value, box in _bounds_and_boxes(problem)
@@ -194,29 +194,6 @@ BOUNDS_CHANGED = (
     "(eqx.tree_at, jax.vmap over them) would be solved at the old ones: build a jt.Problem per "
     "bound value instead (their derivatives at the built values are exact)."
 )
-
-
-def _check_bound_shapes(problem: Problem):
-    """The arrays of the state bounds and `tf_bounds` (which `eqx.tree_at` may replace, to
-    differentiate in them) keep their shapes: a state bound with more entries than bounded
-    states was more path rows, silently (a SUCCESS, then NaN derivatives)."""
-    fn, tf_fn, where = problem.path, problem.terminal_inequality, "problem.path"
-    while isinstance(fn, _OnUserState):
-        fn, where = fn.fn, where + ".fn"
-    while isinstance(tf_fn, _OnUserState):
-        tf_fn = tf_fn.fn
-    wants = []
-    if isinstance(fn, _StateBounds):
-        for side, value, idx in (("upper", fn.upper, fn.above), ("lower", fn.lower, fn.below)):
-            shown = f"({len(idx)},) (one per state with an {side} bound) or ()"
-            wants.append((f"{where}.{side}", value, {(len(idx),), ()}, shown))
-    if isinstance(tf_fn, _TimeBounds):
-        for i, value in enumerate((tf_fn.lower, tf_fn.upper)):
-            if value is not None:
-                wants.append((f"problem.tf_bounds[{i}]", value, {(), (1,)}, "()"))
-    for name, value, shapes, shown in wants:
-        if np.shape(value) not in shapes:
-            raise ValueError(f"`{name}` must have shape {shown}; got shape {np.shape(value)}.")
 
 
 def _bounds_and_boxes(problem: Problem):

@@ -578,3 +578,26 @@ def _names(value, name):
     if repeated:  # (results, reports and saved folders name each row: one would hide another)
         raise ValueError(f"`{name}` must name each row once; {repeated} repeat(s) in {names!r}.")
     return names
+
+
+def check_bound_shapes(problem: Problem):
+    """The arrays of the state bounds and `tf_bounds` (which `eqx.tree_at` may replace, to
+    differentiate in them) keep their shapes: a state bound with more entries than bounded
+    states was more path rows, silently (a SUCCESS, then NaN derivatives)."""
+    fn, tf_fn, where = problem.path, problem.terminal_inequality, "problem.path"
+    while isinstance(fn, _OnUserState):
+        fn, where = fn.fn, where + ".fn"
+    while isinstance(tf_fn, _OnUserState):
+        tf_fn = tf_fn.fn
+    wants = []
+    if isinstance(fn, _StateBounds):
+        for side, value, idx in (("upper", fn.upper, fn.above), ("lower", fn.lower, fn.below)):
+            shown = f"({len(idx)},) (one per state with an {side} bound) or ()"
+            wants.append((f"{where}.{side}", value, {(len(idx),), ()}, shown))
+    if isinstance(tf_fn, _TimeBounds):
+        for i, value in enumerate((tf_fn.lower, tf_fn.upper)):
+            if value is not None:
+                wants.append((f"problem.tf_bounds[{i}]", value, {(), (1,)}, "()"))
+    for name, value, shapes, shown in wants:
+        if np.shape(value) not in shapes:
+            raise ValueError(f"`{name}` must have shape {shown}; got shape {np.shape(value)}.")
