@@ -358,20 +358,3 @@ def weak_rows(G_a, H, J, rows, multipliers, tol):
     norms = jnp.linalg.norm(jnp.concatenate([H, J]), axis=1)
     balance = jnp.linalg.norm(G_a) + jnp.sum(jnp.abs(multipliers) * norms)
     return (rows >= -tol) & ~(multipliers[m:] * norms[m:] > WEAK_TOL * balance)
-
-
-def curvature_floor(ev, lam, a):
-    """The curvature an exact Hessian of the Lagrangian must exceed to count: sqrt(eps)
-    (|G_a| + |[H; C_a]^T lambda|) / (1 + |a|), relative to the curvature the gradient's terms
-    would have over the parameters' scale. Below it the QP's B is the identity (`_trust_region.convexify_blockwise`, and the
-    line search's exact Hessian). A
-    Hessian of round-off (max-range's start: the two terms of W cancel to 5e-16) has random
-    directions, and the QP's B made of it misjudged which rows the equalities pin (an elastic
-    step on consistent constraints: a false SUCCESS at a saddle, docs/history.md). So does one
-    of a perturbation's size: at a start at rest (u = 0) W is 0, and the start moved by eps
-    has W ~ 9 eps along the perturbation's direction; B made of it (eigenvalues eps x 1e-3 ..
-    1e-16) sent the first steps along the last bits (the minimum-time double integrator 6-14
-    iterations over round-off perturbations and ISA settings; docs/history.md, session 40)."""
-    rows = active_rows(ev, jnp.inf)  # E's rows and every inequality row, as lam is laid out
-    natural = (jnp.linalg.norm(ev.G_a) + jnp.linalg.norm(rows.T @ lam)) / (1.0 + jnp.linalg.norm(a))
-    return jnp.sqrt(jnp.finfo(a.dtype).eps) * natural

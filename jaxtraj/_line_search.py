@@ -22,7 +22,6 @@ from ._checks import check_settings, is_count
 from ._driver import SolverState, only_where, start_counters
 from ._kkt import (
     active_rows,
-    curvature_floor,
     inequality_rows,
     is_feasible,
     kkt_outcome,
@@ -352,12 +351,7 @@ class LineSearch(eqx.Module):
         # the problem, tested where the raw Hessian is at hand)
         def exact_hessian(a, cand, lam):
             W = lagrangian_hessian(problem, control, a, simulator, lam)
-            # a W of round-off or of a perturbation's size is no curvature (the trust region's
-            # rule): at the free-flying robot's start at rest moved by 1e-10, B made of it had
-            # eigenvalues of 1e-15, and the QP's refiltered step stood 1e5-1e22 past its rows
-            # (STALLED at once from four of six starts; RESULTS.md)
-            flat = jnp.where(jnp.linalg.norm(W) <= curvature_floor(cand, lam, a), 0.0, W)
-            return sqp.qp_hessian(flat, cand.H), scale_free(cand, a, W, lam)
+            return sqp.qp_hessian(W, cand.H), scale_free(cand, a, W, lam)
 
         B_acc, free = only_where(
             exact & live,

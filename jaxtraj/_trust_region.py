@@ -29,7 +29,6 @@ from ._kalman import sequential_update
 from ._kkt import (
     active_rows,
     curvature_error,
-    curvature_floor,
     inequality_rows,
     is_feasible,
     kkt_outcome,
@@ -47,6 +46,22 @@ from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian
 from ._status import Status, failed
 
 _BISECTIONS = 64  # of the trust-region shift sigma (a scalar; 2^-64 of the bracket)
+
+
+def _curvature_floor(ev: Evaluation, lam, a):
+    """The curvature an exact Hessian of the Lagrangian must exceed to count: sqrt(eps)
+    (|G_a| + |[H; C_a]^T lambda|) / (1 + |a|), relative to the curvature the gradient's terms
+    would have over the parameters' scale. Below it `convexify_blockwise` sees no curvature. A
+    Hessian of round-off (max-range's start: the two terms of W cancel to 5e-16) has random
+    directions, and the QP's B made of it misjudged which rows the equalities pin (an elastic
+    step on consistent constraints: a false SUCCESS at a saddle, docs/history.md). So does one
+    of a perturbation's size: at a start at rest (u = 0) W is 0, and the start moved by eps
+    has W ~ 9 eps along the perturbation's direction; B made of it (eigenvalues eps x 1e-3 ..
+    1e-16) sent the first steps along the last bits (the minimum-time double integrator 6-14
+    iterations over round-off perturbations and ISA settings; docs/history.md, session 40)."""
+    rows = active_rows(ev, jnp.inf)  # E's rows and every inequality row, as lam is laid out
+    natural = (jnp.linalg.norm(ev.G_a) + jnp.linalg.norm(rows.T @ lam)) / (1.0 + jnp.linalg.norm(a))
+    return jnp.sqrt(jnp.finfo(a.dtype).eps) * natural
 
 
 def _multipliers(ev: Evaluation, path_active):
@@ -111,7 +126,7 @@ def convexify_blockwise(W, A, min_curvature, negligible=0.0):
     whole W + c A^T A mixes the two spaces: at Goddard's optimum W has an eigenvalue -2.56 and
     the reduced Hessian 6.8e-5 and 7.7e-4, which the flip distorted into short steps (69
     iterations from the naive start, 7 with this B; docs/history.md). Where |W| <= `negligible`
-    (no curvature: W = 0, or W at its round-off or a perturbation's, `_kkt.curvature_floor`) B is
+    (no curvature: W = 0, or W at its round-off or a perturbation's, `_curvature_floor`) B is
     the identity."""
     p = W.shape[0]
     _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
@@ -317,7 +332,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
         # the QP of the line search with the convexified Hessian, the radius as the box
         # |d_i| <= radius (docs/solvers/kalman-sqp.md)
         A = active_rows(ev, sqp.path_active)
-        B = convexify_blockwise(W, A, sqp.min_curvature, curvature_floor(ev, state.lam, a))
+        B = convexify_blockwise(W, A, sqp.min_curvature, _curvature_floor(ev, state.lam, a))
         gaps = knot_gap_rows(control, a)  # the knot order as rows of the same QP (docs/solvers/kalman-sqp.md)
 
         def new_step(ev, B, lam, radius, gaps):

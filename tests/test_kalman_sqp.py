@@ -14,18 +14,11 @@ import jaxtraj as jt
 from jaxtraj._bounds import knot_gap_rows
 from jaxtraj._driver import init_state
 from jaxtraj._kalman_sqp import convexify
-from jaxtraj._kkt import (
-    active_rows,
-    constraint_rows,
-    curvature_floor,
-    kkt_outcome,
-    lagrangian_gradient,
-    merit,
-    merit_value,
-)
+from jaxtraj._kkt import active_rows, constraint_rows, kkt_outcome, lagrangian_gradient, merit, merit_value
 from jaxtraj._line_search import bfgs_update
 from jaxtraj._sensitivity import Evaluation, evaluate_restricted, lagrangian_hessian
 from jaxtraj._trust_region import (
+    _curvature_floor,
     convexify_blockwise,
     min_norm_step,
     normal_step,
@@ -795,7 +788,7 @@ def test_a_start_at_rest_and_its_round_off_perturbations_take_the_same_path():
     for start in perturbed_starts(entry.start, absolute=True):
         s = step(init_state(solver, entry.problem, entry.control, start, sim, 20))  # evaluates the start
         A = active_rows(s.ev, solver.path_active)
-        B = convexify_blockwise(s.W, A, solver.min_curvature, curvature_floor(s.ev, s.lam, s.a))
+        B = convexify_blockwise(s.W, A, solver.min_curvature, _curvature_floor(s.ev, s.lam, s.a))
         np.testing.assert_allclose(B, np.eye(start.shape[0]), atol=1e-12)
         firsts.append(np.asarray(step(s).lam_qp))  # the first QP step's multipliers
         sol = jt.solve(entry.problem, entry.control, start, simulator=sim)
@@ -823,7 +816,7 @@ def test_trust_region_qp_step_stays_in_its_box_when_the_equalities_cannot():
     for start in perturbed_starts(entry.start, absolute=True):
         s = first(init_state(solver, entry.problem, entry.control, start, sim, 20))  # evaluates the start
         A = active_rows(s.ev, solver.path_active)
-        B = convexify_blockwise(s.W, A, solver.min_curvature, curvature_floor(s.ev, s.lam, s.a))
+        B = convexify_blockwise(s.W, A, solver.min_curvature, _curvature_floor(s.ev, s.lam, s.a))
         knots, dknots = entry.control.knots(s.a), jax.jacfwd(entry.control.knots)(s.a)
         d, _ = solver.direction(s.ev, B, s.lam, knots, dknots, s.radius, knot_gap_rows(entry.control, s.a))
         assert float(jnp.max(jnp.abs(d))) <= float(s.radius) * (1 + 1e-6)
