@@ -182,39 +182,6 @@ def test_minimum_time_whose_met_half_space_held_the_elastic_step(seed):
     assert set(outcomes.values()) <= {"ok", "local minimum"}, outcomes
 
 
-def test_a_soft_step_that_raises_the_violation_is_steered():
-    """Least-time problem 1304 from its random start: three terminal equalities and two
-    half-spaces, all violated, four parameters. The soft QP round's step traded violation for
-    tf at every step (its linear model of the violation rose), and the merit's penalty could
-    not turn such a step into progress: STALLED at tf 4.909 with a violation of 0.039, not at a
-    stationary point of it. Steered (the round taken again with its soft rows weighing more),
-    the search ends CONSTRAINT_STATIONARY where the violation |E|^2 + |max(D, 0)|^2 of the
-    oracle's own affine map is a local minimum (SciPy's L-BFGS-B within the control bounds
-    finds nothing lower near it)."""
-    import scipy.optimize
-
-    fuzz = load_benchmark("fuzz")
-    rp = fuzz.make_min_time(1304)
-    a0 = rp.starts(np.random.default_rng(10_000 + 1304))["random"]
-    sol = jt.solve(rp.problem, rp.control, jnp.asarray(a0), TRUST_REGION, simulator=jt.RK4(fuzz.STEPS))
-    assert jt.status_name(sol.status) == "CONSTRAINT_STATIONARY"
-    a = np.asarray(sol.params)
-
-    def phi(x):
-        M, c = fuzz.rk4_affine(rp.args["A"], rp.args["B"], rp.args["x0"], x[-1], rp.K, rp.m)
-        xf = M @ x[:-1] + c
-        D = rp.args["Ci"] @ xf - rp.args["di"]
-        return 0.5 * np.sum((rp.args["Pe"] @ xf - rp.args["xe"]) ** 2) + 0.5 * np.sum(np.maximum(D, 0.0) ** 2)
-
-    assert phi(a) > 1e-4  # infeasible
-    box = [
-        (max(lo, v - 0.05), min(hi, v + 0.05))
-        for v, lo, hi in zip(a[:-1], np.tile(rp.lower, rp.K), np.tile(rp.upper, rp.K))
-    ]
-    near = scipy.optimize.minimize(phi, a, method="L-BFGS-B", bounds=[*box, (a[-1] - 0.05, a[-1] + 0.05)])
-    assert near.fun >= phi(a) * (1.0 - 1e-6), (near.fun, phi(a))
-
-
 def test_a_met_terminal_row_does_not_hold_an_infeasible_point():
     """The old stop of least-time problem 1198 (level on its upper bound, tf = 0.0556, the
     equality violated by 0.434, half-space 1 met at its bound): the violation |E| + max(D, 0)
