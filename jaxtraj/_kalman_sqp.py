@@ -39,7 +39,6 @@ from ._kkt import (
     with_knot_gaps,
 )
 from ._line_search import LineSearch
-from ._penalty import violation
 from ._sensitivity import Evaluation, evaluate_jitted, lagrangian_hessian, unevaluated
 from ._solution import Solution
 from ._trust_region import TrustRegion
@@ -108,12 +107,6 @@ def _globalization(value):
     if isinstance(value, str):
         return {"line-search": LineSearch, "trust-region": TrustRegion}.get(value, lambda: value)()
     return value
-
-
-#: A soft QP round whose step raises the violation's linear model is taken again with the
-#: noise of its soft rows times `STEER`, at most `MAX_STEER` times (`KalmanSQP.direction`).
-STEER = 1e-2
-MAX_STEER = 3
 
 
 class KalmanSQP(AbstractSolver):
@@ -343,14 +336,13 @@ class KalmanSQP(AbstractSolver):
             # so that the dual active set is compiled once (issue 21); the elastic round's
             # equality rows are zeros, and it counts none of them in the rank of the working set.
             def round_(carry):
-                k, steered, (*_, held_rows) = carry
+                k, (*_, before, _, held) = carry
                 elastic, softer = k >= 1, k == 2
                 # the third round softens the violated rows, and those that held the elastic step
-                soft = softer & (violated | held_rows)
-                steer = jnp.asarray(STEER, hph.dtype) ** steered
+                soft = softer & (violated | (held & before[:n_soft]))
                 noise = self.elastic * (jnp.sum(hph) + jnp.sum(jnp.where(soft, prior_var[:n_soft], 0.0)))
-                noise = steer * noise / jnp.maximum(m + jnp.sum(soft), 1).astype(noise.dtype) + 1e-300
-                r_eq = jnp.where(softer, noise, jnp.where(elastic, steer * r_soft, r))
+                noise = noise / jnp.maximum(m + jnp.sum(soft), 1).astype(noise.dtype) + 1e-300
+                r_eq = jnp.where(softer, noise, jnp.where(elastic, r_soft, r))
                 d_eq, P_eq = self._equality_step(prior, P, ev, r_eq, refine=~elastic)
                 # (their observations only in that round: a scan over every path row otherwise)
                 d_eq, P_eq = lax.cond(
@@ -396,29 +388,19 @@ class KalmanSQP(AbstractSolver):
                     & ~softer
                     & ~jnp.any(violated)
                     & (jnp.sum((ev.E + ev.H @ d) ** 2) > 0.98 * jnp.sum(ev.E**2))
+                    & jnp.any(active[:n_soft])
                     & ~jnp.any(active[n_rows:n_checked])
                 )
-                held_rows = jnp.where(softer, held_rows, held & active[:n_soft])
-                # Steering (Byrd, Nocedal & Waltz's rule, in its weakest form): a soft round's step
-                # that does not lower the violation's linear model is taken again with its soft
-                # rows' noise divided by 1/`STEER`, at most `MAX_STEER` times (a least time whose
-                # softened rows weighed too little: each step traded violation for tf, the
-                # merit's penalty could not help, STALLED at a violation of 4e-2; issue 49)
-                raises = elastic & (violation(ev.E + ev.H @ d, final[:n_rows]) >= violation(ev.E, C[:n_rows]))
-                again = raises & (steered < MAX_STEER)
-                third = (k == 1) & ((inconsistent & jnp.any(violated)) | jnp.any(held_rows))
-                # the next round (3: none): the elastic one where the hard one is inconsistent; the
-                # third where it softens a row (else it repeats the second); a steered repeat
-                nxt = jnp.where(
-                    k == 0,
-                    jnp.where(pinned_violated | inconsistent, 1, 3),
-                    jnp.where(third, 2, jnp.where(again, k, 3)),
-                )
-                return nxt, jnp.where(nxt == k, steered + 1, 0), (d, P2, active, held_rows)
+                return k + 1, (d, P2, active, inconsistent, held)
 
-            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.zeros(n_soft, bool))
-            start = (jnp.array(0), jnp.array(0), unused)
-            _, _, (d, P1, active, _) = lax.while_loop(lambda carry: carry[0] < 3, round_, start)
+            def again(carry):
+                k, (*_, inconsistent, held) = carry
+                # (the third round only where it softens a row: else it repeats the second)
+                third = (k == 2) & ((inconsistent & jnp.any(violated)) | held)
+                return (k == 0) | ((k == 1) & (pinned_violated | inconsistent)) | third
+
+            unused = (d, P1, jnp.zeros(C.shape, bool), jnp.array(False), jnp.array(False))
+            _, (d, P1, active, _, _) = lax.while_loop(again, round_, (jnp.array(0), unused))
             if gap_rows is not None:
                 gaps_held = jnp.where(active[C.shape[0] - gap_rows[0].shape[0] :, None], gap_rows[1], 0.0)
             active = active[:n_rows]
