@@ -114,35 +114,36 @@ FINAL_TIME_DIFFERS = (
 )
 
 
-def follow_final_time(problem: Problem, control: AbstractControl, a):
-    """`(control, a)` for a fixed final time that is traced in the problem or the control (not
-    the same array in both): a ValueError (`FINAL_TIME_DIFFERS`) where the two differ, or
-    where that is known only at run time (under `jit` or `vmap`) `a` raises it then,
-    and a control whose final time is concrete takes the problem's traced one, which the
-    solve read nowhere: `jax.grad` in `problem.final_time` without rebuilding the control
-    was 0 and `jax.vmap` over it solved at the control's one time, silently."""
+def follow_final_time(problem: Problem, control: AbstractControl, refuse_traced: str | None = None):
+    """`control`, for a fixed final time that is traced in the problem or the control (not the
+    same array in both): a control whose final time is concrete takes the problem's traced
+    one, which the solve read nowhere (`jax.grad` in `problem.final_time` without rebuilding
+    the control was 0 and `jax.vmap` over it solved at the control's one time, silently).
+    A ValueError (`FINAL_TIME_DIFFERS`) where the two differ. Where that is known only at run
+    time (under `jit` or `vmap`): a ValueError with the message `refuse_traced` if given, else
+    the returned control's final time raises it then (`eqx.error_if`: the check travels with
+    what the solve reads)."""
     inner = control.control if isinstance(control, FreeInitialState) else control
     T = problem.final_time
     if T is None or not isinstance(inner, FixedFinalTime) or T is inner.final_time:
-        return control, a
+        return control
     traced = [isinstance(v, jax.core.Tracer) for v in (T, inner.final_time)]
     if not any(traced):  # (concrete ones: `check_problem_and_control`)
-        return control, a
-    differs = jnp.any(jnp.asarray(T, dtype=jnp.float64) != inner.final_time)
+        return control
+    T = jnp.asarray(T, dtype=jnp.float64) if traced[0] else inner.final_time
+    differs = jnp.any(T != inner.final_time)
     try:  # (concrete under an eager jax.grad or jax.jvp)
-        concrete = bool(differs)
+        known = bool(differs)
     except jax.errors.ConcretizationTypeError:
-        a = eqx.error_if(a, differs, f"jt.solve: {FINAL_TIME_DIFFERS}")
+        if refuse_traced is not None:
+            raise ValueError(refuse_traced) from None
+        T = eqx.error_if(T, differs, f"jt.solve: {FINAL_TIME_DIFFERS}")
     else:
-        if concrete:
+        if known:
             raise ValueError(FINAL_TIME_DIFFERS)
-    if traced[0] and not traced[1]:
-        T = jnp.asarray(T, dtype=jnp.float64)
-        if isinstance(control, FreeInitialState):
-            control = eqx.tree_at(lambda c: c.control.final_time, control, T)
-        else:
-            control = eqx.tree_at(lambda c: c.final_time, control, T)
-    return control, a
+    if isinstance(control, FreeInitialState):
+        return eqx.tree_at(lambda c: c.control.final_time, control, T)
+    return eqx.tree_at(lambda c: c.final_time, control, T)
 
 
 def closed_over_tracer(problem: Problem) -> str | None:

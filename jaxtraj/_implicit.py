@@ -430,6 +430,13 @@ def _solution_tangent(sol, computed):
     return eqx.tree_at(lambda s: [getattr(s, k) for k in names], zeros, [computed[k] for k in names])
 
 
+#: Why `jt.solve_batch` refuses a traced problem or control.
+OUTSIDE_JIT = (
+    "solve_batch runs outside jax.jit and jax.vmap (its problem and control must be "
+    "concrete; they may be differentiated): inside them, vmap jt.solve."
+)
+
+
 def differentiable_batch(run, problem, control, simulator, active_tol):
     """`run(problem, control)` (a batch of solves returning a `Solution` with a leading
     start axis, e.g. `jt.solve_batch`'s driver with its starts closed over; host code that
@@ -445,10 +452,7 @@ def differentiable_batch(run, problem, control, simulator, active_tol):
     def solve(arrays):
         # a derivative calls this with concrete arrays (the rule below); `jit` or `vmap` would not
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(arrays)):
-            raise ValueError(
-                "solve_batch runs outside jax.jit and jax.vmap (its problem and control must be "
-                "concrete; they may be differentiated): inside them, vmap jt.solve."
-            )
+            raise ValueError(OUTSIDE_JIT)
         return run(*eqx.combine(arrays, static))
 
     @solve.defjvp

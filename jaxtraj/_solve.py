@@ -91,7 +91,7 @@ def solve(
     """
     solver, max_steps = check_solver(solver, max_steps)
     a0 = check_start(problem, control, a0)
-    control, a0 = follow_final_time(problem, control, a0)
+    control = follow_final_time(problem, control)
     check_simulator(simulator)
     solver.check(problem, control)
     check_memory("max_steps", max_steps * HISTORY_BYTES, f"the history of {max_steps:,} steps")

@@ -791,3 +791,8 @@ def test_a_final_time_changed_in_the_problem_only_is_followed_or_refused():
         jax.grad(objective)(2.0)
     with pytest.raises(Exception, match=differ):
         jax.vmap(objective)(jnp.array([1.0, 2.0]))
+    with pytest.raises(Exception, match=differ):  # (known at run time only: on the control's final time)
+        jax.jit(objective)(2.0)
+    # the batch runs on the host: a final time known at run time only is refused up front
+    with pytest.raises(ValueError, match="solve_batch runs outside jax.jit and jax.vmap"):
+        jax.vmap(batch)(jnp.array([1.0, 2.0]))

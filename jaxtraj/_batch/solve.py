@@ -23,7 +23,7 @@ from .._checks import (
 from .._configure import unused_cores_hint
 from .._driver import HISTORY_BYTES, AbstractSolver, check_step_counter
 from .._fingerprint import fingerprint, problem_fingerprint
-from .._implicit import differentiable_batch
+from .._implicit import OUTSIDE_JIT, differentiable_batch
 from .._kkt import ACTIVE_TOL
 from .._simulate import RK4, AbstractSimulator, check_simulator
 from .._solution import Solution
@@ -120,7 +120,7 @@ def solve_batch(
     """
     solver, max_steps = check_solver(solver, max_steps)
     check_problem_and_control(problem, control)
-    control, _ = follow_final_time(problem, control, np.zeros(()))  # (under jit, refused below)
+    control = follow_final_time(problem, control, refuse_traced=OUTSIDE_JIT)
     check_simulator(simulator)
     solver.check(problem, control)
     a0s = _check_a0s(control, a0s)
