@@ -243,7 +243,7 @@ class LineSearch(eqx.Module):
         viol = violation_of(ev)
         eligible = fresh & ~far_from_feasible(ev, a, FAR) & (state.streak == 0)
         carried, cap = state.cap.carried(
-            state.mu, natural_scale(state.B, rows), viol, ev.G, eligible, self.mu_max, self.cap_progress
+            state.mu, natural_scale(state.B, rows), viol, ev.G, eligible, self.mu_max, self.cap_progress, sqp.ctol
         )
         B_reset = jnp.trace(state.B) / a.shape[0] * jnp.eye(a.shape[0])
 

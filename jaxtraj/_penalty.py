@@ -43,13 +43,17 @@ class PenaltyCap(eqx.Module):
     def none(cls):
         return cls(jnp.asarray(jnp.inf, jnp.float64), jnp.asarray(jnp.inf, jnp.float64), jnp.array(False))
 
-    def carried(self, mu, natural, viol, G, eligible, mu_max, progress):
+    def carried(self, mu, natural, viol, G, eligible, mu_max, progress, ctol):
         """`(penalty carried to the next step, whether it was capped)`: at most `mu_max` x
-        `natural` where `eligible`, once the violation `viol` has halved since the last cap,
-        or where no step has raised the penalty since and the objective `G` has fallen by
-        `progress` x (1 + |G|) since then (so that caps happen finitely often)."""
+        `natural` where `eligible`, once the violation `viol` has halved since the last cap
+        or is below that of one row at `ctol` (a violation at round-off cannot halve: a
+        least time capped at 2.5e-30 kept a penalty of 1e18, set where the Hessian was 1e16
+        times larger, and crawled to MAX_ITERATIONS; issue 49), or where no step has raised
+        the penalty since and the objective `G` has fallen by `progress` x (1 + |G|) since
+        then (so that caps happen finitely often away from feasibility)."""
         progressed = ~self.raised & (G <= self.objective - progress * (1.0 + jnp.abs(self.objective)))
-        cap = eligible & (progressed | (viol <= 0.5 * self.violation)) & (mu > mu_max * natural)
+        halved = (viol <= 0.5 * self.violation) | (viol <= 0.5 * ctol**2)
+        cap = eligible & (progressed | halved) & (mu > mu_max * natural)
         return jnp.where(cap, mu_max * natural, mu), cap
 
     def update(self, cap, viol, G, raised):

@@ -363,7 +363,7 @@ def _step(tr, sqp, problem, control, simulator, state: TRState):
     natural = natural_scale(W, A if with_rows else ev.H)
     viol = violation_of(ev)
     eligible = fresh & ~far & (state.streak == 0)
-    carried, cap = state.cap.carried(state.mu, natural, viol, ev.G, eligible, tr.mu_max, tr.cap_progress)
+    carried, cap = state.cap.carried(state.mu, natural, viol, ev.G, eligible, tr.mu_max, tr.cap_progress, sqp.ctol)
     mu_new = _penalty(ev, lam, carried, d, B)
     raised = fresh & (mu_new > carried)
     mu = jnp.where(fresh, mu_new, state.mu)
