@@ -182,6 +182,23 @@ def test_minimum_time_whose_met_half_space_held_the_elastic_step(seed):
     assert set(outcomes.values()) <= {"ok", "local minimum"}, outcomes
 
 
+def test_minimum_time_whose_penalty_was_set_far_from_feasibility_does_not_crawl():
+    """Random least-time problem 1407 from its random start: far from feasibility (violation
+    80) the exact Hessian and with it the penalty's natural scale grew to 1e33; the penalty was
+    capped at 1e18 where the violation reached 2.5e-30, and no later cap could follow, since a
+    violation at round-off never halves again. With the penalty 1e18 times the Hessian's new
+    scale, every fresh step failed on its 1e-17 linearization error and the correction saved
+    steps of 3e-5 in tf: MAX_ITERATIONS 0.3 % above the least time. A violation below one
+    row's at `ctol` now counts as halved: SUCCESS at the oracle's least time (HiGHS LPs and
+    bisection) in a few dozen steps."""
+    fuzz = load_benchmark("fuzz")
+    rp = fuzz.make_min_time(1407)
+    reference, _ = rp.oracle()
+    a0 = rp.starts(np.random.default_rng(10_000 + 1407))["random"]
+    outcome, iterations, _ = fuzz.check(rp, TRUST_REGION, a0, reference)
+    assert outcome == "ok" and iterations <= 60, (outcome, iterations)
+
+
 def test_a_met_terminal_row_does_not_hold_an_infeasible_point():
     """The old stop of least-time problem 1198 (level on its upper bound, tf = 0.0556, the
     equality violated by 0.434, half-space 1 met at its bound): the violation |E| + max(D, 0)
