@@ -522,9 +522,10 @@ class TrustRegion(eqx.Module):
       round-off). The seven Earth-Mars cases keep theirs (at most 7 x the scale). A cap
       lowers the merit's penalty, and so changes the merit under the iterates: it applies only
       once the violation |E|^2/2 + |max(C, 0)|^2/2 has halved since the last cap, so that it
-      happens finitely often on the way to feasibility. Capping at every step let a
-      pendulum's minimum time (benchmarks/unseen.py) cycle through 8 accepted points
-      (MAX_ITERATIONS). benchmarks/RESULTS.md.
+      happens finitely often on the way to feasibility, or is below one row's at `ctol` (a
+      violation at round-off cannot halve: a least time capped at 2.5e-30 kept 1e18 and
+      crawled). Capping at every step let a pendulum's minimum time (benchmarks/unseen.py)
+      cycle through 8 accepted points (MAX_ITERATIONS). benchmarks/RESULTS.md.
     - `cap_progress`: a cap applies too where no step has raised the penalty since the last
       one and the objective has fallen by `cap_progress` x (1 + |G|) since then (0.01): the
       iterates have left the region that penalty was set for, and it has held every step

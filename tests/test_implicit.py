@@ -396,7 +396,7 @@ def test_start_has_no_derivative_and_plain_solves_are_unchanged():
 @pytest.mark.slow
 def test_second_derivatives_forward_over_either_mode():
     """Second derivatives by forward mode over forward or reverse mode (`jax.hessian` is
-    `jacfwd(jacrev)`): the restricted LQ optimum J* = 1/2 w h r^T M^-1 r (r = target - C x0)
+    `jacfwd(jacrev)`), and reverse over reverse: the restricted LQ optimum J* = 1/2 w h r^T M^-1 r (r = target - C x0)
     has the Hessian w h [M^-1, -M^-1 C; -C^T M^-1, C^T M^-1 C] in (target, x0) and
     d2J*/(dw dtarget) = h M^-1 r (NumPy); the minimum time tf* = 2 sqrt(d / g) its closed-form
     second derivatives at a vertex (bounds active)."""
@@ -427,6 +427,10 @@ def test_second_derivatives_forward_over_either_mode():
     assert rel_err(tdd, -0.5 * d**-1.5 * g**-0.5) < 1e-7
     assert rel_err(tdg, -0.5 * d**-0.5 * g**-1.5) < 1e-7
     assert rel_err(tgg, 1.5 * d**0.5 * g**-2.5) < 1e-7
+    # reverse over reverse too (the docs said JAX refused it)
+    H_rr = jax.jacrev(jax.jacrev(J_of, argnums=0), argnums=0)(*point)
+    assert rel_err(H_rr, w * h * Minv) < 1e-7
+    assert rel_err(jax.grad(jax.grad(tf_of))(jnp.asarray(d), jnp.asarray(g)), -0.5 * d**-1.5 * g**-0.5) < 1e-7
 
 
 @pytest.mark.parametrize("field", ["tf", "constraints", "max_constraint_error"])
