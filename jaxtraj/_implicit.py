@@ -14,9 +14,10 @@ theta: linear in theta_dot, so reverse mode follows by transposition. The solver
 iterations are never differentiated, and the start a0 has no derivative.
 
 The KKT matrix is solved by its null-space form: the active rows, each scaled to unit
-norm, by an SVD (their rank is the number of active rows, else the matrix is singular),
-then W on the rows' null space (positive definite at a strict local minimum, else
-singular). The tangents themselves use the rows' pseudo-inverse, whose derivative (forward
+norm, by an SVD, then W on the rows' null space (positive definite at a strict local
+minimum, else singular). Dependent active rows (a boundary arc on the grid) leave the
+tangent unique where their change in theta stays in their range and W on that null space
+does not depend on how the multipliers are shared among them; both are checked, else NaN. The tangents themselves use the rows' pseudo-inverse, whose derivative (forward
 mode over them: `jax.hessian`) is finite where the SVD's is not (repeated zero singular
 values). A solve that did not end SUCCESS, a singular KKT matrix or a non-finite
 quantity gives NaN tangents, never a silent number (docs/differentiable.md).
@@ -31,6 +32,7 @@ import jax
 import jax.core
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 
 from ._bounds import bound_rows, knot_gap_rows
@@ -40,8 +42,14 @@ from ._simulate import RK4, final_state
 from ._status import Status
 
 #: Singular values of the unit-scaled active rows below this fraction of the largest make
-#: them dependent (a singular KKT matrix: NaN tangents).
+#: them dependent (`_kkt_point`: their tangents need more checks, and multipliers have none).
 RANK_TOL = 1e-9
+#: Dependent active rows: W on their null space may change by this fraction of |W| along the
+#: multipliers' freedom (`_kkt_point`), else NaN tangents.
+SHARE_TOL = 1e-8
+#: Dependent active rows: the tangent's rows must stay consistent, their change in theta
+#: (along a fixed direction of the differentiated arrays) in the rows' range to this fraction.
+CONSISTENT_TOL = 1e-8
 #: Eigenvalues of the reduced Hessian (W on the null space of the active rows) below this
 #: fraction of |W| make it singular or indefinite (NaN tangents).
 CURVATURE_TOL = 1e-10
@@ -181,10 +189,13 @@ class KKTPoint(eqx.Module):
     - `weakly_active`: per inequality row, within the activity tolerance but left out of A
       (its multiplier about zero, `WEAK_TOL`): where the solution map may have a kink, and
       the derivative is the one-sided one that lets the row go.
-    - `independent`, `curved`: the KKT matrix is nonsingular: the active rows are
-      independent (`RANK_TOL`), the reduced Hessian positive definite (`CURVATURE_TOL`).
-    - `differentiable`: SUCCESS, both conditions and finite values: the derivatives are
-      numbers, not NaN.
+    - `independent`: the active rows are independent (`RANK_TOL`); where they are not, the
+      multipliers' tangents are NaN and the others need the rows to stay consistent in
+      theta (`kkt_tangents`).
+    - `curved`: the reduced Hessian is positive definite (`CURVATURE_TOL`).
+    - `differentiable`: SUCCESS, `curved`, finite values and, for dependent rows, W on their
+      null space the same for another sharing of their multipliers (`SHARE_TOL`): the
+      derivatives are numbers, not NaN (but for the consistency along theta).
 
     The rest is the factorization: `W` the Hessian of the Lagrangian; `rows_on` the rows of
     A (equalities first) and `row_scale` their norms; `Vt`, `s`, `rank` the SVD of the
@@ -229,18 +240,36 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
     # takes the rows without the knot gaps, whose curvature is added here)
     gaps = knot_gap_rows(control, a)
     num_gaps = 0 if gaps is None else gaps[0].shape[0]
-    W = lagrangian_hessian(problem, control, a, simulator, lam[: m + r - num_gaps])
-    W = W + _gap_curvature(control, a, lam[m + r - num_gaps :])
-
-    # the active rows scaled to unit norm, their rank and null space; W on that null space
+    # the active rows scaled to unit norm, their rank and null space
     safe = jnp.where(on & (norms > 0), norms, 1.0)
     Js = jnp.where(on[:, None], Jall / safe[:, None], 0.0)
     _, s, Vt = jnp.linalg.svd(jnp.concatenate([Js, jnp.zeros((n, n), a.dtype)]), full_matrices=False)
     rank = jnp.sum(s > RANK_TOL * jnp.maximum(s[0], 1e-300))
     independent = (rank == jnp.sum(on)) & jnp.all(~on | (norms > 0))
     z = jnp.arange(n) >= rank
+
+    # Dependent active rows (a boundary arc: the path rows of its grid points outnumber the
+    # parameters that move it) leave the multipliers free along the rows' left null space, and
+    # W with them. The tangent is still unique where W on the rows' null space does not depend
+    # on that freedom (rows linear in a, as a state bound of linear dynamics): W at lam and at
+    # lam + nu (nu a fixed combination of the left null space, as large as lam) must agree
+    # there to `SHARE_TOL` x |W|; else the derivative depends on which multiplier the
+    # perturbation selects, and is NaN. (One Hessian of the Lagrangian for both, vmapped.)
+    inv_s2 = jnp.where(~z, 1.0 / jnp.where(~z, s**2, 1.0), 0.0)
+    w = jnp.where(on, 1.0 + 0.5 * jnp.sin(jnp.arange(m + r, dtype=a.dtype)), 0.0)
+    left_null = jnp.where(on, w - Js @ (Vt.T @ (inv_s2 * (Vt @ (Js.T @ w)))), 0.0) / safe
+    size = jnp.linalg.norm(jnp.where(on, lam, 0.0)) / jnp.maximum(jnp.linalg.norm(left_null), 1e-300)
+    shared = jax.lax.stop_gradient(lam + size * left_null)
+
+    def hessian(lam):
+        W = lagrangian_hessian(problem, control, a, simulator, lam[: m + r - num_gaps])
+        return W + _gap_curvature(control, a, lam[m + r - num_gaps :])
+
+    W, W_shared = jax.vmap(hessian)(jnp.stack([lam, shared]))
     scale = jnp.maximum(jnp.linalg.norm(W), 1e-300)
-    Mz = jnp.where(z[:, None] & z[None, :], Vt @ W @ Vt.T, scale * jnp.eye(n, dtype=a.dtype))
+    on_null = z[:, None] & z[None, :]
+    unique = independent | (jnp.linalg.norm(jnp.where(on_null, Vt @ (W_shared - W) @ Vt.T, 0.0)) <= SHARE_TOL * scale)
+    Mz = jnp.where(on_null, Vt @ W @ Vt.T, scale * jnp.eye(n, dtype=a.dtype))
     curved = jnp.min(jnp.linalg.eigvalsh(Mz)) > CURVATURE_TOL * scale
     finite = jnp.all(jnp.isfinite(W)) & jnp.all(jnp.isfinite(Jall)) & jnp.all(jnp.isfinite(G_a))
     return KKTPoint(
@@ -249,7 +278,7 @@ def _kkt_point(problem, control, simulator, a, status, first, active_tol) -> KKT
         weakly_active=keep & ~active,
         independent=independent,
         curved=curved,
-        differentiable=(status == Status.SUCCESS) & independent & curved & finite,
+        differentiable=(status == Status.SUCCESS) & unique & curved & finite,
         W=W,
         rows_on=on,
         row_scale=safe,
@@ -323,11 +352,12 @@ def _jvp(fn, primals, tangents, explicit):
 
 
 @eqx.filter_jit
-def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
+def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, differentiated=None):
     """The tangents of the float fields of `sol` (a `Solution` of `problem`, `control`)
     along `dtheta` (tangents of the inexact arrays of `(problem, control)`, None elsewhere),
     by the implicit function theorem at `sol.params` (module docs); linear in `dtheta`.
-    `active_tol`: inequality rows with values >= -`active_tol` may be active."""
+    `active_tol`: inequality rows with values >= -`active_tol` may be active.
+    `differentiated`: `dtheta`'s structure, True where its tangent may be nonzero (None: all)."""
     theta, rest = eqx.partition((problem, control), eqx.is_inexact_array)
     a = sol.params
 
@@ -356,7 +386,17 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
     null = jnp.eye(n, dtype=a.dtype) - Jp @ Js  # the projector onto the null space
     dy = -(Jp @ r2)
     dz = jnp.linalg.solve(null @ k.W @ null + (jnp.eye(n, dtype=a.dtype) - null), -(null @ (r1 + k.W @ dy)))
-    nan_unless_ok = jnp.where(k.differentiable, 1.0, jnp.nan)  # a factor, not a select: it survives transposition
+    # Dependent active rows: their change in theta must stay in the rows' range (the rows can
+    # all stay active: a bound that moves as one along an arc), else some leave and the
+    # tangent that keeps them all is none. Checked along a fixed direction of the arrays
+    # differentiated here, not along `dtheta`: the tangent must stay linear in it.
+    consistent = jax.lax.cond(
+        k.independent,
+        lambda: jnp.array(True),
+        lambda: _consistent(first_order, theta, dtheta, differentiated, k, Js, Jp, explicit),
+    )
+    ok = k.differentiable & consistent
+    nan_unless_ok = jnp.where(ok, 1.0, jnp.nan)  # a factor, not a select: it survives transposition
     da = (dy + dz) * nan_unless_ok
 
     def values(a, theta):
@@ -368,11 +408,30 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta):
     # squares in the unit-scaled rows, w = row_scale x dlam_A; zero off the active set
     w = -(Jp.T @ (r1 + k.W @ da))
     dlam = jnp.where(k.rows_on, w / k.row_scale, 0.0)
+    dlam = dlam * jnp.where(k.independent, 1.0, jnp.nan)  # (dependent rows share them freely)
     tangents["multipliers"] = dlam[:m]
     if problem.terminal_inequality is not None:
         start = m + _num_path_rows(problem, control, simulator)
         tangents["terminal_inequality_multipliers"] = dlam[start : start + tangents["terminal_inequality"].shape[0]]
     return jax.tree.map(lambda t: t * nan_unless_ok, tangents)
+
+
+def _consistent(first_order, theta, dtheta, differentiated, k, Js, Jp, explicit):
+    """Whether the active rows' change in theta, along a fixed direction of the arrays that
+    are differentiated (`differentiated`, None: all of `dtheta`'s), lies in the range of their
+    unit-scaled Jacobian `Js` (`Jp` its pseudo-inverse) to `CONSISTENT_TOL`."""
+    if differentiated is None:
+        differentiated = jax.tree.map(lambda dx: True, dtheta)
+    direction = jax.tree.map(
+        lambda x, on: jnp.cos(jnp.arange(x.size, dtype=x.dtype).reshape(x.shape) + 1.0) * float(on),
+        theta,
+        differentiated,
+    )
+    direction = jax.lax.stop_gradient(direction)
+    _, (_, dE, _, drows, _) = _jvp(first_order, (jax.lax.stop_gradient(theta),), (direction,), explicit)
+    change = jnp.where(k.rows_on, jnp.concatenate([dE, drows]) / k.row_scale, 0.0)
+    outside = change - Js @ (Jp @ change)
+    return jnp.linalg.norm(outside) <= CONSISTENT_TOL * jnp.maximum(jnp.linalg.norm(change), 1e-300)
 
 
 def _zero_tangent(x):
@@ -395,14 +454,16 @@ def differentiable_solve(run, problem, control, a0, simulator, active_tol):
     def solve(arrays, a0):
         return run(*eqx.combine(arrays, static), a0)
 
-    @solve.defjvp
     def solve_jvp(primals, tangents):
-        arrays, dtheta = _floats_as_arrays(primals[0]), _floats_as_arrays(tangents[0])
+        arrays, (dtheta, differentiated) = _floats_as_arrays(primals[0]), _dense(tangents[0], primals[0])
         a0 = primals[1]
         sol = solve(arrays, a0)  # itself: a second derivative meets this rule again
         p, c = eqx.combine(arrays, static)
-        computed = kkt_tangents(p, c, simulator, sol, active_tol, _theta_tangents(p, c, static, dtheta))
+        dtheta = _theta_tangents(p, c, static, dtheta)
+        computed = kkt_tangents(p, c, simulator, sol, active_tol, dtheta, _theta_mask(p, c, static, differentiated))
         return sol, _solution_tangent(sol, computed)
+
+    solve.defjvp(solve_jvp, symbolic_zeros=True)
 
     return solve(arrays, a0)
 
@@ -413,6 +474,26 @@ def _floats_as_arrays(tree):
     tangent; as a float it is no inexact array of the problem, and `args=k` had the
     derivative 0."""
     return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, tree)
+
+
+def _dense(tangents, primals):
+    """`(tangents, differentiated)`: the tangents of a `custom_jvp` rule with symbolic zeros,
+    as arrays (`_floats_as_arrays`; zeros for a symbolic zero), and per leaf whether it is
+    differentiated (not a symbolic zero)."""
+    is_zero = lambda t: isinstance(t, SymbolicZero)
+    dense = jax.tree.map(
+        lambda t, p: jnp.zeros(jnp.shape(p), jnp.result_type(p)) if is_zero(t) else t,
+        tangents,
+        primals,
+        is_leaf=is_zero,
+    )
+    return _floats_as_arrays(dense), jax.tree.map(lambda t: not is_zero(t), tangents, is_leaf=is_zero)
+
+
+def _theta_mask(problem, control, static, differentiated):
+    """`differentiated` (a bool per array leaf) in `_theta_tangents`' structure."""
+    mask = jax.tree.map(eqx.is_inexact_array, (problem, control))
+    return eqx.filter(eqx.combine(differentiated, static), mask)
 
 
 def _theta_tangents(problem, control, static, tangents):
@@ -455,13 +536,15 @@ def differentiable_batch(run, problem, control, simulator, active_tol):
             raise ValueError(OUTSIDE_JIT)
         return run(*eqx.combine(arrays, static))
 
-    @solve.defjvp
     def solve_jvp(primals, tangents):
-        arrays, darrays = _floats_as_arrays(primals[0]), _floats_as_arrays(tangents[0])
+        arrays, (darrays, differentiated) = _floats_as_arrays(primals[0]), _dense(tangents[0], primals[0])
         sols = solve(arrays)
         p, c = eqx.combine(arrays, static)
         dtheta = _theta_tangents(p, c, static, darrays)
-        computed = jax.vmap(lambda sol: kkt_tangents(p, c, simulator, sol, active_tol, dtheta))(sols)
+        mask = _theta_mask(p, c, static, differentiated)
+        computed = jax.vmap(lambda sol: kkt_tangents(p, c, simulator, sol, active_tol, dtheta, mask))(sols)
         return sols, _solution_tangent(sols, computed)
+
+    solve.defjvp(solve_jvp, symbolic_zeros=True)
 
     return solve(arrays)

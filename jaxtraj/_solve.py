@@ -84,8 +84,9 @@ def solve(
     `vmap`) of any float field of the result with respect to the float arrays of `problem`
     (`args`, `x0`, ...) and of `control` (a fixed final time) come from the implicit
     function theorem at the returned point with its active set, never from the iterations;
-    `a0` has no derivative, and a solve that did not end SUCCESS (or whose KKT matrix is
-    singular) gives NaN derivatives. See docs/differentiable.md.
+    `a0` has no derivative, and a solve that did not end SUCCESS (or where the tangent is
+    not unique: a singular reduced Hessian, dependent active rows that cannot all stay
+    active) gives NaN derivatives. See docs/differentiable.md.
 
     **Raises:** `ValueError` for bad input (outside jit).
     """

@@ -627,6 +627,53 @@ def test_attitude_slew_in_the_keep_out_half_angle():
 
 
 @pytest.mark.slow
+def test_a_boundary_arc_has_derivatives_where_its_rows_move_together():
+    """x'' = u from rest to x(1) = 1 at least energy with v <= b + q t + c t^3 (b = 1.2, q = c
+    = 0): the speed meets the bound at t = 0.5 and rides it, so the path rows of ten grid
+    points are active and dependent (rank 6 with the equality, 7 parameters): the KKT matrix is
+    singular and every derivative was NaN. The rows keep a solution as b or q moves (the arc
+    follows a constant or a ramp, which the linear pieces hold) and, linear in the parameters,
+    curve alike whatever the multipliers: the parameters' and the objective's derivatives in b
+    and q equal central differences of re-solves, d2J/db2 too (forward over reverse and
+    reverse over reverse). Along c (a cubic that no linear piece can ride) some rows leave:
+    the one-sided differences differ by 1e-2, and the derivative is NaN. The multipliers of
+    dependent rows are not unique: their tangents NaN."""
+    problem = jt.Problem(
+        lambda t, x, u, args: jnp.stack([x[1], u[0]]), np.zeros(2), lambda tf, xf, args: xf[:1] - 1.0, ("x(1)=1",),
+        running_cost=lambda t, x, u, args: 0.5 * (u @ u), final_time=1.0, args={"b": 1.2, "q": 0.0, "c": 0.0},
+        path=lambda t, x, u, args: jnp.stack([x[1] - args["b"] - args["q"] * t - args["c"] * t**3]),
+        path_names=("v <= b + q t + c t^3",),
+    )  # fmt: skip
+    control = problem.parametrize(jt.controls.PiecewiseLinear(6))
+    sim = jt.RK4(5)
+    base = {"b": 1.2, "q": 0.0, "c": 0.0}
+
+    def solve(key, value):
+        prob = eqx.tree_at(lambda p: p.args, problem, {**base, key: value})
+        return jt.solve(prob, control, np.zeros(control.num_params), simulator=sim)
+
+    sol = solve("b", 1.2)
+    assert sol.status == jt.Status.SUCCESS and abs(float(sol.objective) - 1.92) < 1e-12
+    k = kkt_point(problem, control, sol, sim)
+    assert not bool(k.independent) and int(jnp.sum(k.active)) >= 10
+    h = 1e-6
+    for key in ("b", "q"):
+        x = jnp.asarray(base[key])
+        da = jax.jacfwd(lambda v, key=key: solve(key, v).params)(x)
+        fd = (solve(key, base[key] + h).params - solve(key, base[key] - h).params) / (2 * h)
+        assert rel_err(da, fd) < 1e-6, key
+        dJ = jax.grad(lambda v, key=key: solve(key, v).objective)(x)
+        dJ_fd = (solve(key, base[key] + h).objective - solve(key, base[key] - h).objective) / (2 * h)
+        assert rel_err(dJ, dJ_fd) < 1e-6, key
+    grad = jax.grad(lambda b: solve("b", b).objective)
+    d2_fd = (grad(1.2 + 1e-5) - grad(1.2 - 1e-5)) / 2e-5
+    assert rel_err(jax.hessian(lambda b: solve("b", b).objective)(1.2), d2_fd) < 1e-6
+    assert rel_err(jax.grad(grad)(1.2), d2_fd) < 1e-6
+    assert np.all(np.isnan(jax.jacfwd(lambda c: solve("c", c).params)(0.0)))
+    assert np.all(np.isnan(jax.jacfwd(lambda b: solve("b", b).multipliers)(1.2)))
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 6, 9, 18])
 def test_random_qp_against_the_oracle(seed):
     """Random convex problems of benchmarks/fuzz.py (3 states, 2 controls, 4 pieces; seed 2:
@@ -636,8 +683,7 @@ def test_random_qp_against_the_oracle(seed):
     jt.solve against central differences of the QP optimum by Clarabel (cvxpy), re-solved
     with the perturbed data (measured <= 2e-11 relative: on a fixed active set the optimal
     value is quadratic in the data, so central differences are exact but for the QP
-    solver's round-off). (Seed 19 of this size ends with a state bound and an equality on
-    the same final state, both active: dependent rows, NaN derivatives by design.)"""
+    solver's round-off). (Seed 19: the next test.)"""
     import dataclasses
 
     fuzz = load_benchmark("fuzz")
@@ -663,6 +709,37 @@ def test_random_qp_against_the_oracle(seed):
             down = dataclasses.replace(rp, args={**rp.args, name: rp.args[name] - e}).oracle()[0]
             fd[i] = (up - down) / (2 * step)
         assert got.shape == fd.shape and fd.size and rel_err(got, fd) < 1e-5
+
+
+@pytest.mark.slow
+def test_a_bound_and_an_equality_on_one_state_keep_the_derivatives_they_share():
+    """Random convex problem 19 of benchmarks/fuzz.py (3 states, 2 controls, 4 pieces) ends
+    with a state bound and a terminal equality on the same final state, both active: two
+    identical rows, which made every derivative NaN. Along the target of the cost both stay
+    active: dJ*/d(target) from jax.grad equals central differences of the QP optimum by
+    Clarabel (cvxpy). Along the equality's value xe they cannot both stay (the bound does not
+    move): NaN."""
+    import dataclasses
+
+    fuzz = load_benchmark("fuzz")
+    rp = fuzz.make(19, 3, 2, 4)
+    prob, ctrl = rp.problem, rp.control
+    start = jnp.asarray(rp.starts(np.random.default_rng(0))["zeros"])
+
+    def objective(target, xe):
+        p = eqx.tree_at(lambda p: (p.args["target"], p.args["xe"]), prob, (target, xe))
+        return jt.solve(p, ctrl, start, simulator=jt.RK4(fuzz.STEPS)).objective
+
+    target, xe = prob.args["target"], prob.args["xe"]
+    got = jax.grad(objective, argnums=0)(target, xe)
+    fd = np.zeros(rp.args["target"].shape)
+    for i in range(fd.size):
+        e = 1e-4 * np.eye(fd.size)[i]
+        up = dataclasses.replace(rp, args={**rp.args, "target": rp.args["target"] + e}).oracle()[0]
+        down = dataclasses.replace(rp, args={**rp.args, "target": rp.args["target"] - e}).oracle()[0]
+        fd[i] = (up - down) / 2e-4
+    assert rel_err(got, fd) < 1e-5
+    assert np.all(np.isnan(jax.grad(objective, argnums=1)(target, xe)))
 
 
 @pytest.mark.slow
@@ -798,5 +875,5 @@ def test_a_final_time_changed_in_the_problem_only_is_followed_or_refused():
     with pytest.raises(Exception, match=differ):  # (known at run time only: on the control's final time)
         jax.jit(objective)(2.0)
     # the batch runs on the host: a final time known at run time only is refused up front
-    with pytest.raises(ValueError, match="solve_batch runs outside jax.jit and jax.vmap"):
+    with pytest.raises(ValueError, match=r"solve_batch runs outside jax\.jit and jax\.vmap"):
         jax.vmap(batch)(jnp.array([1.0, 2.0]))
