@@ -393,7 +393,7 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, different
     consistent = jax.lax.cond(
         k.independent,
         lambda: jnp.array(True),
-        lambda: _consistent(first_order, theta, dtheta, differentiated, k, Js, Jp, explicit),
+        lambda: _consistent(simulator, a, theta, rest, dtheta, differentiated, k, Js, Jp, explicit),
     )
     ok = k.differentiable & consistent
     nan_unless_ok = jnp.where(ok, 1.0, jnp.nan)  # a factor, not a select: it survives transposition
@@ -416,10 +416,11 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, different
     return jax.tree.map(lambda t: t * nan_unless_ok, tangents)
 
 
-def _consistent(first_order, theta, dtheta, differentiated, k, Js, Jp, explicit):
-    """Whether the active rows' change in theta, along a fixed direction of the arrays that
-    are differentiated (`differentiated`, None: all of `dtheta`'s), lies in the range of their
-    unit-scaled Jacobian `Js` (`Jp` its pseudo-inverse) to `CONSISTENT_TOL`."""
+def _consistent(simulator, a, theta, rest, dtheta, differentiated, k, Js, Jp, explicit):
+    """Whether the active rows' change in theta (the values' jvp at `a`, no Jacobian in a),
+    along a fixed direction of the arrays that are differentiated (`differentiated`, None:
+    all of `dtheta`'s), lies in the range of their unit-scaled Jacobian `Js` (`Jp` its
+    pseudo-inverse) to `CONSISTENT_TOL`."""
     if differentiated is None:
         differentiated = jax.tree.map(lambda dx: True, dtheta)
     direction = jax.tree.map(
@@ -427,9 +428,14 @@ def _consistent(first_order, theta, dtheta, differentiated, k, Js, Jp, explicit)
         theta,
         differentiated,
     )
-    direction = jax.lax.stop_gradient(direction)
-    _, (_, dE, _, drows, _) = _jvp(first_order, (jax.lax.stop_gradient(theta),), (direction,), explicit)
-    change = jnp.where(k.rows_on, jnp.concatenate([dE, drows]) / k.row_scale, 0.0)
+    a = jax.lax.stop_gradient(a)
+
+    def values(theta):
+        v = restricted_values(*eqx.combine(theta, rest), a, simulator)
+        return jnp.concatenate([v["E"], v["rows"]])
+
+    _, dvalues = _jvp(values, (jax.lax.stop_gradient(theta),), (jax.lax.stop_gradient(direction),), explicit)
+    change = jnp.where(k.rows_on, dvalues / k.row_scale, 0.0)
     outside = change - Js @ (Jp @ change)
     return jnp.linalg.norm(outside) <= CONSISTENT_TOL * jnp.maximum(jnp.linalg.norm(change), 1e-300)
 
