@@ -431,7 +431,8 @@ def _consistent(simulator, a, theta, rest, dtheta, differentiated, k, Js, Jp, ex
     a = jax.lax.stop_gradient(a)
 
     def values(theta):
-        v = restricted_values(*eqx.combine(theta, rest), a, simulator)
+        p, c = eqx.combine(theta, rest)
+        v = restricted_values(p, c, a, simulator)
         return jnp.concatenate([v["E"], v["rows"]])
 
     _, dvalues = _jvp(values, (jax.lax.stop_gradient(theta),), (jax.lax.stop_gradient(direction),), explicit)
