@@ -17,9 +17,9 @@ The KKT matrix is solved by its null-space form: the active rows, each scaled to
 norm, by an SVD, then W on the rows' null space (positive definite at a strict local
 minimum, else singular). Dependent active rows (a boundary arc on the grid) leave the
 tangent unique where their change in theta stays in their range and W on that null space
-does not depend on how the multipliers are shared among them; both are checked, else NaN. The tangents themselves use the rows' pseudo-inverse, whose derivative (forward
-mode over them: `jax.hessian`) is finite where the SVD's is not (repeated zero singular
-values). A solve that did not end SUCCESS, a singular KKT matrix or a non-finite
+does not depend on how the multipliers are shared among them; both are checked, else NaN.
+The tangents themselves use the rows' pseudo-inverse, whose derivative (forward mode over
+them: `jax.hessian`) is finite where the SVD's is not (repeated zero singular values). A solve that did not end SUCCESS, a singular KKT matrix or a non-finite
 quantity gives NaN tangents, never a silent number (docs/differentiable.md).
 
 Everything here is forward mode in the parameters (`jax.jacfwd`), so that any simulator

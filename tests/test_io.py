@@ -135,11 +135,11 @@ def test_unserializable_inputs_change_nothing(result, tmp_path):
         # the summary's objective, projected gradient and iteration count against the arrays
         (
             lambda d: _edit(d, lambda s: s.update(objective=s["objective"] + 1)),
-            r"`objective` = (7\.0|6\.9{10,}\d*) contradicts .*npz",
+            r"`objective` = (7\.0|7\.0{10,}\d*|6\.9{10,}\d*) contradicts .*npz",  # (the last bits vary)
         ),
         (
             lambda d: _edit(d, lambda s: s.update(objective=None)),
-            r"`objective` = nan contradicts .*\((6\.0|5\.9{10,}\d*) there",
+            r"`objective` = nan contradicts .*\((6\.0|6\.0{10,}\d*|5\.9{10,}\d*) there",
         ),
         (
             lambda d: _edit(d, lambda s: s.update(projected_gradient=1.0)),
