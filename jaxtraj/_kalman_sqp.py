@@ -485,16 +485,16 @@ class KalmanSQP(AbstractSolver):
         r = self.r_rel * jnp.einsum("ip,pq,iq->i", ev.H, P, ev.H) + 1e-300
         rows, target = ev.H, -curvature_error(ev, E_cand, d)
         on = jnp.ones(target.shape, bool)
-        V, V_a = ev.V, ev.V_a
-        if V is not None and V_a is not None:
-            at = V + V_a @ d  # the parameter rows at the step
+        V_a = ev.V_a
+        at = None if ev.V is None or V_a is None else ev.V + V_a @ d  # the parameter rows at the step
+        if at is not None and V_a is not None:
             rows, target = jnp.concatenate([rows, V_a]), jnp.concatenate([target, jnp.zeros_like(at)])
             r = jnp.concatenate([r, self.r_rel * jnp.einsum("ip,pq,iq->i", V_a, P, V_a) + 1e-300])
             on = jnp.concatenate([on, at >= -self.ctol])
         dc, _, _ = sequential_update(jnp.zeros_like(d), P, rows, target, r, active=on)
         dc, _, _ = sequential_update(dc, P, rows, target, r, active=on)
-        if V is not None and V_a is not None:
-            rate, room = V_a @ dc, jnp.maximum(-(V + V_a @ d), 0.0) + self.ctol
+        if at is not None and V_a is not None:
+            rate, room = V_a @ dc, jnp.maximum(-at, 0.0) + self.ctol
             dc = jnp.min(jnp.where(rate > room, room / rate, 1.0), initial=1.0) * dc
         total, _ = keep_knots_ordered(d + dc, P, knots, dknots, self.a_t, collapse=self.path_active)
         return jnp.where(jnp.all(jnp.isfinite(total)), total - d, 0.0)
