@@ -352,12 +352,12 @@ def _jvp(fn, primals, tangents, explicit):
 
 
 @eqx.filter_jit
-def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, differentiated=None):
+def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, differentiated):
     """The tangents of the float fields of `sol` (a `Solution` of `problem`, `control`)
     along `dtheta` (tangents of the inexact arrays of `(problem, control)`, None elsewhere),
     by the implicit function theorem at `sol.params` (module docs); linear in `dtheta`.
     `active_tol`: inequality rows with values >= -`active_tol` may be active.
-    `differentiated`: `dtheta`'s structure, True where its tangent may be nonzero (None: all)."""
+    `differentiated`: `dtheta`'s structure, True where its tangent may be nonzero."""
     theta, rest = eqx.partition((problem, control), eqx.is_inexact_array)
     a = sol.params
 
@@ -393,7 +393,7 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, different
     consistent = jax.lax.cond(
         k.independent,
         lambda: jnp.array(True),
-        lambda: _consistent(simulator, a, theta, rest, dtheta, differentiated, k, Js, Jp, explicit),
+        lambda: _consistent(simulator, a, theta, rest, differentiated, k, Js, Jp, explicit),
     )
     ok = k.differentiable & consistent
     nan_unless_ok = jnp.where(ok, 1.0, jnp.nan)  # a factor, not a select: it survives transposition
@@ -416,13 +416,10 @@ def kkt_tangents(problem, control, simulator, sol, active_tol, dtheta, different
     return jax.tree.map(lambda t: t * nan_unless_ok, tangents)
 
 
-def _consistent(simulator, a, theta, rest, dtheta, differentiated, k, Js, Jp, explicit):
+def _consistent(simulator, a, theta, rest, differentiated, k, Js, Jp, explicit):
     """Whether the active rows' change in theta (the values' jvp at `a`, no Jacobian in a),
-    along a fixed direction of the arrays that are differentiated (`differentiated`, None:
-    all of `dtheta`'s), lies in the range of their unit-scaled Jacobian `Js` (`Jp` its
-    pseudo-inverse) to `CONSISTENT_TOL`."""
-    if differentiated is None:
-        differentiated = jax.tree.map(lambda dx: True, dtheta)
+    along a fixed direction of the arrays that are differentiated (`differentiated`), lies in
+    the range of their unit-scaled Jacobian `Js` (`Jp` its pseudo-inverse) to `CONSISTENT_TOL`."""
     direction = jax.tree.map(
         lambda x, on: jnp.cos(jnp.arange(x.size, dtype=x.dtype).reshape(x.shape) + 1.0) * float(on),
         theta,
@@ -467,7 +464,7 @@ def differentiable_solve(run, problem, control, a0, simulator, active_tol):
         sol = solve(arrays, a0)  # itself: a second derivative meets this rule again
         p, c = eqx.combine(arrays, static)
         dtheta = _theta_tangents(p, c, static, dtheta)
-        computed = kkt_tangents(p, c, simulator, sol, active_tol, dtheta, _theta_mask(p, c, static, differentiated))
+        computed = kkt_tangents(p, c, simulator, sol, active_tol, dtheta, _theta_tangents(p, c, static, differentiated))
         return sol, _solution_tangent(sol, computed)
 
     solve.defjvp(solve_jvp, symbolic_zeros=True)
@@ -497,15 +494,9 @@ def _dense(tangents, primals):
     return _floats_as_arrays(dense), jax.tree.map(lambda t: not is_zero(t), tangents, is_leaf=is_zero)
 
 
-def _theta_mask(problem, control, static, differentiated):
-    """`differentiated` (a bool per array leaf) in `_theta_tangents`' structure."""
-    mask = jax.tree.map(eqx.is_inexact_array, (problem, control))
-    return eqx.filter(eqx.combine(differentiated, static), mask)
-
-
 def _theta_tangents(problem, control, static, tangents):
     """The tangents of the arrays of `(problem, control)` as `kkt_tangents`' `dtheta`: those
-    of the inexact arrays, None elsewhere."""
+    of the inexact arrays, None elsewhere (or any tree of those leaves: `_dense`'s flags)."""
     mask = jax.tree.map(eqx.is_inexact_array, (problem, control))
     return eqx.filter(eqx.combine(tangents, static), mask)
 
@@ -548,7 +539,7 @@ def differentiable_batch(run, problem, control, simulator, active_tol):
         sols = solve(arrays)
         p, c = eqx.combine(arrays, static)
         dtheta = _theta_tangents(p, c, static, darrays)
-        mask = _theta_mask(p, c, static, differentiated)
+        mask = _theta_tangents(p, c, static, differentiated)
         computed = jax.vmap(lambda sol: kkt_tangents(p, c, simulator, sol, active_tol, dtheta, mask))(sols)
         return sols, _solution_tangent(sols, computed)
 
